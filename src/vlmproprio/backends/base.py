@@ -1,0 +1,42 @@
+"""The one interface every backend implements.
+
+A backend answers a batch of chat requests, one answer each, in order. It says
+who it is through ``identity()``: the fields that, together with the request,
+determine an answer and therefore enter the cache key (see vlmproprio.cache).
+Device and batch size are deliberately not part of the identity: an answer
+recorded on a GPU replays anywhere.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Sequence
+
+from vlmproprio.chat import Answer, ChatRequest
+from vlmproprio.errors import VlmproprioError
+
+
+class BackendError(VlmproprioError):
+    """A backend cannot answer (missing weights, unreachable server, ...). The message says what to do."""
+
+
+class Backend(ABC):
+    #: how many requests one ``generate`` call takes at most (the caller splits larger batches)
+    max_batch_size: int = 1
+
+    @abstractmethod
+    def identity(self) -> dict[str, str]:
+        """backend, model_id, revision, dtype, attn_implementation: everything model-side in the cache key."""
+
+    @abstractmethod
+    def generate(self, requests: Sequence[ChatRequest]) -> list[Answer]:
+        """One answer per request, in order. Raises BackendError when it cannot answer at all."""
+
+    def close(self) -> None:  # noqa: B027 - optional hook
+        """Free what the backend holds (GPU memory, HTTP pools)."""
+
+    def __enter__(self) -> Backend:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

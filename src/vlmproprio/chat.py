@@ -1,0 +1,124 @@
+"""The data a backend is asked and answers with: chat requests, generation settings, answers.
+
+These types are the boundary between the pipeline (which builds requests from
+episodes and prompts) and the backends (which answer them). They carry no
+behaviour beyond serialisation, so every stage can import them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import asdict, dataclass, field
+from typing import Literal
+
+Role = Literal["system", "user", "assistant"]
+
+
+@dataclass(frozen=True)
+class TextPart:
+    text: str
+
+
+@dataclass(frozen=True)
+class ImagePart:
+    """An image as the exact bytes of its file (PNG). The cache key uses their sha256."""
+
+    data: bytes
+    mime: str = "image/png"
+
+    @property
+    def sha256(self) -> str:
+        return hashlib.sha256(self.data).hexdigest()
+
+    def __repr__(self) -> str:  # keep logs and tracebacks free of megabytes of bytes
+        return f"ImagePart(sha256={self.sha256[:12]}…, {len(self.data)} bytes)"
+
+
+Part = TextPart | ImagePart
+
+
+@dataclass(frozen=True)
+class Message:
+    role: Role
+    parts: tuple[Part, ...]
+
+    @property
+    def text(self) -> str:
+        return "".join(p.text for p in self.parts if isinstance(p, TextPart))
+
+    @property
+    def images(self) -> list[ImagePart]:
+        return [p for p in self.parts if isinstance(p, ImagePart)]
+
+
+@dataclass(frozen=True)
+class GenerationConfig:
+    """Decoding settings. Greedy (temperature 0) is the paper's setting and the default."""
+
+    max_new_tokens: int = 512
+    temperature: float = 0.0
+    seed: int | None = 0
+    # Forces exactly this many new tokens when set (benchmarks use it so the work is comparable).
+    min_new_tokens: int | None = None
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class RequestTag:
+    """Where a request comes from. Used in messages and transcripts; never part of the cache key."""
+
+    episode_id: str = ""
+    condition: str = ""
+    stage: str = ""  # "p1" | "p2" | "p3"
+    group: int = -1
+
+    def __str__(self) -> str:
+        g = f" group {self.group}" if self.group >= 0 else ""
+        return f"episode {self.episode_id}, condition {self.condition}, stage {self.stage}{g}"
+
+
+@dataclass(frozen=True)
+class ChatRequest:
+    messages: tuple[Message, ...]
+    config: GenerationConfig = GenerationConfig()
+    # Version of the prompt templates that produced the messages; part of the cache key.
+    prompt_version: str = ""
+    tag: RequestTag = field(default=RequestTag(), compare=False)
+
+    @property
+    def images(self) -> list[ImagePart]:
+        return [img for m in self.messages for img in m.images]
+
+
+@dataclass(frozen=True)
+class AnswerMeta:
+    """What produced an answer. ``identity`` fields also enter the cache key (see vlmproprio.cache)."""
+
+    backend: str
+    model_id: str
+    revision: str = ""
+    dtype: str = ""
+    device: str = ""
+    attn_implementation: str = ""
+    prompt_tokens: int = 0
+    completion_tokens: int = 0
+    latency_s: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> AnswerMeta:
+        known = {k: d[k] for k in cls.__dataclass_fields__ if k in d}
+        return cls(**known)
+
+
+@dataclass(frozen=True)
+class Answer:
+    text: str
+    meta: AnswerMeta
+    key: str = ""
+    from_cache: bool = False

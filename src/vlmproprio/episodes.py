@@ -1,0 +1,507 @@
+"""Episodes: the frozen robot recordings every later stage reads.
+
+On disk an episode is a folder ``<root>/episodes/<episode_id>/``::
+
+    episode.json    metadata, one row per sampled frame (step, state, ground truth)
+    steps.npz       full-rate state and ground truth at every sim step (deflated, no pickle)
+    frames/000.png  256x256 RGB, lossless, right side up, one per sampled frame
+
+and ``<root>/manifest.json`` holds the sha256 of every file under ``<root>``.
+Loading an episode verifies its files against the manifest, so a changed,
+missing or extra file is an error that names it.
+
+State conventions (also written into every episode.json):
+
+* ``joints``: the 7 Panda joint angles in rad, then the gripper opening in m
+  (distance between the two finger joints, ~0 closed, ~0.08 fully open).
+* ``ee``: x, y, z of the grip site in m in the world frame, then roll, pitch,
+  yaw in rad: extrinsic x-y-z Euler angles of ``robot0_eef_quat``, unwrapped
+  along the episode (``numpy.unwrap``), so they may leave (-pi, pi] but never jump.
+* directions are in the robot's frame: forward = +x (away from the base),
+  left = +y, up = +z.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import re
+import zipfile
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from vlmproprio.errors import VlmproprioError
+
+FORMAT_VERSION = 1
+TASKS = ("door", "pick_place")
+JOINT_DIM = 8
+EE_DIM = 6
+MANIFEST_NAME = "manifest.json"
+EPISODE_FILE = "episode.json"
+STEPS_FILE = "steps.npz"
+FRAMES_DIR = "frames"
+
+# Episode ids become path components: keep them to a closed alphabet so that no id can leave its folder.
+EPISODE_ID_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
+
+STATE_CONVENTIONS = {
+    "joints": "7 joint angles (rad) then gripper opening (m, distance between the finger joints)",
+    "ee": "x, y, z of the grip site (m, world frame) then roll, pitch, yaw (rad, extrinsic xyz Euler "
+    "of robot0_eef_quat, unwrapped along the episode)",
+    "directions": "robot frame: forward=+x (away from the base), left=+y, up=+z",
+}
+
+
+class EpisodeError(VlmproprioError):
+    """An episode or fixture set that cannot be used; the message names the file and what is wrong."""
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One sampled frame: the image, the robot state at that moment and its ground truth."""
+
+    index: int
+    step: int
+    image_path: Path
+    image_sha256: str
+    joints: tuple[float, ...]
+    ee: tuple[float, ...]
+    phase: str
+    direction: str
+
+    def image_bytes(self) -> bytes:
+        return self.image_path.read_bytes()
+
+    def image_array(self) -> np.ndarray:
+        """Decoded RGB pixels (H, W, 3) uint8."""
+        from PIL import Image
+
+        try:
+            with Image.open(self.image_path) as im:
+                im.load()
+                return np.asarray(im.convert("RGB"))
+        except (OSError, SyntaxError, ValueError) as exc:
+            raise EpisodeError(f"{self.image_path}: cannot decode image ({exc})") from exc
+
+
+@dataclass(frozen=True)
+class TargetBin:
+    """Where the object must go in PickPlace, in robosuite's index and in words as seen in the image."""
+
+    index: int
+    row: str  # "near" | "far"  (from the robot; near is the bottom row of the image)
+    side: str  # "left" | "right" (the robot's and the image's left/right)
+    description: str
+
+
+@dataclass(frozen=True)
+class StepStates:
+    """Full-rate state and ground truth at every sim step (arrays of length ``steps + 1``)."""
+
+    step: np.ndarray  # (T,) int
+    joints: np.ndarray  # (T, 8)
+    ee: np.ndarray  # (T, 6)
+    phase: np.ndarray  # (T,) int index into Episode.phase_names
+    direction: np.ndarray  # (T,) int index into Episode.direction_vocab
+
+
+@dataclass(frozen=True)
+class PhaseSpan:
+    name: str
+    start_step: int
+    end_step: int  # inclusive
+
+
+@dataclass
+class Episode:
+    episode_id: str
+    root: Path
+    task: str
+    env_name: str
+    target_object: str
+    action: str
+    instruction: str
+    target_bin: TargetBin | None
+    seed: int
+    steps: int
+    stride: int
+    camera: str
+    image_size: tuple[int, int]
+    versions: dict[str, str]
+    success: bool
+    phase_names: tuple[str, ...]
+    direction_vocab: tuple[str, ...]
+    phases: tuple[PhaseSpan, ...]
+    frames: tuple[Frame, ...]
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def frame_phases(self) -> list[str]:
+        return [f.phase for f in self.frames]
+
+    def boundaries(self) -> list[int]:
+        """Ground-truth boundaries between sampled frames: j means a new phase starts at frame j + 1.
+
+        Indexed like the similarity trace (caption j against caption j + 1)."""
+        ph = self.frame_phases
+        return [j for j in range(len(ph) - 1) if ph[j] != ph[j + 1]]
+
+    @cached_property
+    def step_states(self) -> StepStates:
+        return read_steps(self.root / STEPS_FILE)
+
+    def joints_array(self) -> np.ndarray:
+        return np.array([f.joints for f in self.frames], dtype=np.float64)
+
+    def ee_array(self) -> np.ndarray:
+        return np.array([f.ee for f in self.frames], dtype=np.float64)
+
+
+# ---------------------------------------------------------------------------------------------- ids
+
+
+def check_episode_id(episode_id: str) -> str:
+    if not isinstance(episode_id, str) or not EPISODE_ID_RE.match(episode_id):
+        raise EpisodeError(
+            f"invalid episode id {episode_id!r}: use lower-case letters, digits, '_' and '-' "
+            "(no path separators, no '..')"
+        )
+    return episode_id
+
+
+def standard_episode_ids() -> list[str]:
+    """The paper's 22: 10 Door episodes and 3 per target bin for PickPlaceCereal."""
+    return [f"door_{s:02d}" for s in range(10)] + [f"bin{b}_{s:02d}" for b in range(4) for s in range(3)]
+
+
+# ---------------------------------------------------------------------------------------------- hashing
+
+
+def sha256_file(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def pixel_sha256(rgb: np.ndarray) -> str:
+    """Hash of decoded pixels: equal images hash equal whatever PNG encoder wrote them."""
+    arr = np.ascontiguousarray(rgb, dtype=np.uint8)
+    h = hashlib.sha256(f"{arr.shape}".encode())
+    h.update(arr.tobytes())
+    return h.hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------- manifest
+
+
+def _fixture_files(root: Path) -> list[str]:
+    return sorted(
+        p.relative_to(root).as_posix()
+        for p in root.rglob("*")
+        if p.is_file() and p.name != MANIFEST_NAME and not p.name.startswith(".")
+    )
+
+
+def build_manifest(root: Path) -> dict:
+    root = Path(root)
+    files = {rel: sha256_file(root / rel) for rel in _fixture_files(root)}
+    return {"format_version": FORMAT_VERSION, "files": files}
+
+
+def write_manifest(root: Path) -> Path:
+    path = Path(root) / MANIFEST_NAME
+    atomic_write_text(path, json.dumps(build_manifest(root), indent=1, sort_keys=True) + "\n")
+    return path
+
+
+def read_manifest(root: Path) -> dict[str, str]:
+    path = Path(root) / MANIFEST_NAME
+    if not path.is_file():
+        raise EpisodeError(f"{path}: manifest missing (run `vlmproprio manifest {root}` after changing fixtures)")
+    try:
+        data = json.loads(path.read_text())
+        files = data["files"]
+        if not isinstance(files, dict):
+            raise TypeError("'files' is not an object")
+    except (ValueError, KeyError, TypeError) as exc:
+        raise EpisodeError(f"{path}: not a valid manifest ({exc})") from exc
+    return files
+
+
+def verify_files(root: Path, prefix: str = "", manifest: dict[str, str] | None = None) -> int:
+    """Check every file under ``root/prefix`` against the manifest; return how many were checked.
+
+    Raises EpisodeError naming the first file that is changed, missing or not in the manifest."""
+    if prefix and not prefix.endswith("/"):
+        raise ValueError("prefix must end with '/'")
+    root = Path(root)
+    manifest = read_manifest(root) if manifest is None else manifest
+    expected = {k: v for k, v in manifest.items() if k.startswith(prefix)}
+    here = root / prefix
+    present = {prefix + rel for rel in _fixture_files(here)} if here.is_dir() else set()
+    for rel in sorted(present - expected.keys()):
+        raise EpisodeError(f"{root / rel}: extra file, not in {root / MANIFEST_NAME}")
+    for rel in sorted(expected.keys() - present):
+        raise EpisodeError(f"{root / rel}: missing (listed in {root / MANIFEST_NAME})")
+    for rel in sorted(expected):
+        if sha256_file(root / rel) != expected[rel]:
+            raise EpisodeError(f"{root / rel}: sha256 differs from {root / MANIFEST_NAME} (file changed or corrupt)")
+    return len(expected)
+
+
+# ---------------------------------------------------------------------------------------------- io helpers
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write via a temp file in the same folder and rename, so a reader never sees half a file."""
+    import os
+    import tempfile
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def write_steps(path: Path, states: StepStates) -> None:
+    """A deterministic .npz: fixed member order and timestamps, so equal arrays give equal bytes."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        for name in ("step", "joints", "ee", "phase", "direction"):
+            arr = np.ascontiguousarray(getattr(states, name))
+            member = io.BytesIO()
+            np.save(member, arr, allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, member.getvalue(), compresslevel=9)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def read_steps(path: Path) -> StepStates:
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in ("step", "joints", "ee", "phase", "direction")}
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
+        raise EpisodeError(f"{path}: cannot read full-rate states ({exc})") from exc
+    n = len(arrays["step"])
+    shapes = {"joints": (n, JOINT_DIM), "ee": (n, EE_DIM), "phase": (n,), "direction": (n,)}
+    for k, shape in shapes.items():
+        if arrays[k].shape != shape:
+            raise EpisodeError(f"{path}: {k} has shape {arrays[k].shape}, expected {shape}")
+    if not (np.isfinite(arrays["joints"]).all() and np.isfinite(arrays["ee"]).all()):
+        raise EpisodeError(f"{path}: non-finite values in the full-rate states")
+    return StepStates(**arrays)
+
+
+# ---------------------------------------------------------------------------------------------- load
+
+
+def _vector(value, dim: int, what: str, where: str) -> tuple[float, ...]:
+    if not isinstance(value, list) or len(value) != dim:
+        raise EpisodeError(f"{where}: {what} must be a list of {dim} numbers, got {value!r:.80}")
+    out = []
+    for v in value:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise EpisodeError(f"{where}: {what} has a non-finite or non-numeric value {v!r}")
+        out.append(float(v))
+    return tuple(out)
+
+
+def _parse_episode(episode_dir: Path, data: dict) -> Episode:
+    where = str(episode_dir / EPISODE_FILE)
+    try:
+        if data.get("format_version") != FORMAT_VERSION:
+            raise EpisodeError(f"{where}: format_version {data.get('format_version')!r}, expected {FORMAT_VERSION}")
+        if data["task"] not in TASKS:
+            raise EpisodeError(f"{where}: unknown task {data['task']!r} (known: {', '.join(TASKS)})")
+        frames = []
+        for i, row in enumerate(data["frames"]):
+            fw = f"{where}: frames[{i}]"
+            if row["index"] != i:
+                raise EpisodeError(f"{fw}: index {row['index']} out of order")
+            img = episode_dir / row["file"]
+            if episode_dir.resolve() not in img.resolve().parents:
+                raise EpisodeError(f"{fw}: image path {row['file']!r} leaves the episode folder")
+            frames.append(
+                Frame(
+                    index=i,
+                    step=int(row["step"]),
+                    image_path=img,
+                    image_sha256=str(row["pixel_sha256"]),
+                    joints=_vector(row["joints"], JOINT_DIM, "joints", fw),
+                    ee=_vector(row["ee"], EE_DIM, "ee", fw),
+                    phase=str(row["phase"]),
+                    direction=str(row["direction"]),
+                )
+            )
+        if not frames:
+            raise EpisodeError(f"{where}: no frames")
+        tb = data.get("target_bin")
+        target_bin = TargetBin(**tb) if tb else None
+        return Episode(
+            episode_id=check_episode_id(data["episode_id"]),
+            root=episode_dir,
+            task=data["task"],
+            env_name=data["env_name"],
+            target_object=data["target_object"],
+            action=data["action"],
+            instruction=data["instruction"],
+            target_bin=target_bin,
+            seed=int(data["seed"]),
+            steps=int(data["steps"]),
+            stride=int(data["stride"]),
+            camera=data["camera"],
+            image_size=tuple(data["image_size"]),
+            versions=dict(data["versions"]),
+            success=bool(data["success"]),
+            phase_names=tuple(data["phase_names"]),
+            direction_vocab=tuple(data["direction_vocab"]),
+            phases=tuple(PhaseSpan(**p) for p in data["phases"]),
+            frames=tuple(frames),
+            extra=dict(data.get("extra", {})),
+        )
+    except EpisodeError:
+        raise
+    except (KeyError, TypeError, ValueError) as exc:
+        raise EpisodeError(f"{where}: malformed episode metadata ({type(exc).__name__}: {exc})") from exc
+
+
+def load_episode(root: Path, episode_id: str, *, verify: bool = True, manifest: dict | None = None) -> Episode:
+    """Load ``root/episodes/<episode_id>``, verifying its files against ``root/manifest.json``."""
+    root = Path(root)
+    check_episode_id(episode_id)
+    episode_dir = root / "episodes" / episode_id
+    if not episode_dir.is_dir():
+        known = ", ".join(list_episode_ids(root)) or "none"
+        raise EpisodeError(f"{episode_dir}: no such episode (episodes in {root}: {known})")
+    if verify:
+        verify_files(root, f"episodes/{episode_id}/", manifest)
+    path = episode_dir / EPISODE_FILE
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise EpisodeError(f"{path}: cannot read episode metadata ({exc})") from exc
+    if not isinstance(data, dict):
+        raise EpisodeError(f"{path}: episode metadata must be a JSON object")
+    episode = _parse_episode(episode_dir, data)
+    if episode.episode_id != episode_id:
+        raise EpisodeError(f"{path}: episode_id {episode.episode_id!r} does not match its folder {episode_id!r}")
+    return episode
+
+
+def list_episode_ids(root: Path) -> list[str]:
+    d = Path(root) / "episodes"
+    if not d.is_dir():
+        return []
+    return sorted(p.name for p in d.iterdir() if p.is_dir() and EPISODE_ID_RE.match(p.name))
+
+
+def load_episodes(root: Path, episode_ids: Sequence[str] | None = None, *, verify: bool = True) -> list[Episode]:
+    root = Path(root)
+    manifest = read_manifest(root) if verify else None
+    if verify:
+        # an extra episode folder is an error too, not something to skip silently
+        listed = {k.split("/")[1] for k in manifest if k.startswith("episodes/")}
+        for eid in list_episode_ids(root):
+            if eid not in listed:
+                raise EpisodeError(f"{root / 'episodes' / eid}: extra episode, not in {root / MANIFEST_NAME}")
+    ids = list(episode_ids) if episode_ids is not None else list_episode_ids(root)
+    if not ids:
+        raise EpisodeError(f"{root / 'episodes'}: no episodes found")
+    return [load_episode(root, eid, verify=verify, manifest=manifest) for eid in ids]
+
+
+# ---------------------------------------------------------------------------------------------- save
+
+
+def episode_metadata(
+    *,
+    episode_id: str,
+    task: str,
+    env_name: str,
+    target_object: str,
+    action: str,
+    instruction: str,
+    target_bin: TargetBin | None,
+    seed: int,
+    steps: int,
+    stride: int,
+    camera: str,
+    image_size: tuple[int, int],
+    versions: dict[str, str],
+    success: bool,
+    phase_names: Sequence[str],
+    direction_vocab: Sequence[str],
+    phases: Iterable[PhaseSpan],
+    frame_rows: list[dict],
+    extra: dict | None = None,
+) -> dict:
+    return {
+        "format_version": FORMAT_VERSION,
+        "episode_id": check_episode_id(episode_id),
+        "task": task,
+        "env_name": env_name,
+        "target_object": target_object,
+        "action": action,
+        "instruction": instruction,
+        "target_bin": None if target_bin is None else target_bin.__dict__,
+        "seed": seed,
+        "steps": steps,
+        "stride": stride,
+        "camera": camera,
+        "image_size": list(image_size),
+        "versions": versions,
+        "success": success,
+        "state_conventions": STATE_CONVENTIONS,
+        "phase_names": list(phase_names),
+        "direction_vocab": list(direction_vocab),
+        "phases": [p.__dict__ for p in phases],
+        "frames": frame_rows,
+        "extra": extra or {},
+    }
+
+
+def write_png(path: Path, rgb: np.ndarray) -> None:
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(rgb, dtype=np.uint8), "RGB").save(buf, format="PNG", optimize=True)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def write_episode(root: Path, metadata: dict, images: Sequence[np.ndarray], states: StepStates) -> Path:
+    """Write one episode folder (replacing any old one). The caller rewrites the manifest afterwards."""
+    import shutil
+
+    episode_dir = Path(root) / "episodes" / check_episode_id(metadata["episode_id"])
+    if episode_dir.exists():
+        shutil.rmtree(episode_dir)
+    (episode_dir / FRAMES_DIR).mkdir(parents=True)
+    if len(images) != len(metadata["frames"]):
+        raise ValueError(f"{len(images)} images for {len(metadata['frames'])} frame rows")
+    for row, rgb in zip(metadata["frames"], images, strict=True):
+        write_png(episode_dir / row["file"], rgb)
+    write_steps(episode_dir / STEPS_FILE, states)
+    atomic_write_text(episode_dir / EPISODE_FILE, json.dumps(metadata, indent=1) + "\n")
+    return episode_dir

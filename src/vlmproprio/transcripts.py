@@ -1,0 +1,109 @@
+"""Transcript: everything a model said about one episode under one condition.
+
+The pipeline writes one Transcript per (model, episode, condition) as JSON into
+a run directory; scoring and segmentation read them back, so a run can be
+re-scored later without the model.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Literal
+
+from vlmproprio.errors import VlmproprioError
+
+ParseStatus = Literal["ok", "recovered", "missing"]
+PARSE_STATUSES: tuple[str, ...] = ("ok", "recovered", "missing")
+TRANSCRIPT_VERSION = 1
+
+
+class TranscriptError(VlmproprioError):
+    """A transcript file that cannot be read; the message names the file."""
+
+
+@dataclass(frozen=True)
+class FrameCaption:
+    frame_index: int
+    step: int
+    text: str
+    status: ParseStatus
+
+
+@dataclass(frozen=True)
+class SceneCaption:
+    group: int
+    frame_indices: tuple[int, ...]
+    text: str
+    status: ParseStatus
+
+
+@dataclass(frozen=True)
+class RequestRecord:
+    """One model call behind a transcript: which stage, which cache key, how it was answered."""
+
+    stage: str  # "p1" | "p2" | "p3"
+    group: int  # -1 for p3
+    key: str
+    from_cache: bool
+    latency_s: float
+
+
+@dataclass
+class Transcript:
+    model: str
+    episode_id: str
+    task: str
+    condition: str
+    prompt_version: str
+    frames: list[FrameCaption]
+    scenes: list[SceneCaption]
+    final: str
+    final_status: ParseStatus
+    requests: list[RequestRecord] = field(default_factory=list)
+    timing: dict[str, float] = field(default_factory=dict)
+    version: int = TRANSCRIPT_VERSION
+
+    @property
+    def frame_texts(self) -> list[str]:
+        return [f.text for f in self.frames]
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Transcript:
+        d = dict(d)
+        d["frames"] = [FrameCaption(**f) for f in d["frames"]]
+        d["scenes"] = [SceneCaption(**{**s, "frame_indices": tuple(s["frame_indices"])}) for s in d["scenes"]]
+        d["requests"] = [RequestRecord(**r) for r in d.get("requests", [])]
+        return cls(**d)
+
+
+def transcript_filename(episode_id: str, condition: str) -> str:
+    return f"{episode_id}__{condition}.json"
+
+
+def write_transcript(run_dir: Path, t: Transcript) -> Path:
+    from vlmproprio.episodes import atomic_write_text
+
+    path = Path(run_dir) / "transcripts" / t.model / transcript_filename(t.episode_id, t.condition)
+    atomic_write_text(path, json.dumps(t.to_dict(), indent=1, ensure_ascii=False) + "\n")
+    return path
+
+
+def read_transcript(path: Path) -> Transcript:
+    try:
+        d = json.loads(Path(path).read_text(encoding="utf-8"))
+        if d.get("version") != TRANSCRIPT_VERSION:
+            raise ValueError(f"version {d.get('version')!r}, expected {TRANSCRIPT_VERSION}")
+        return Transcript.from_dict(d)
+    except (OSError, ValueError, TypeError, KeyError) as exc:
+        raise TranscriptError(f"{path}: cannot read transcript ({type(exc).__name__}: {exc})") from exc
+
+
+def read_transcripts(run_dir: Path, model: str | None = None) -> list[Transcript]:
+    root = Path(run_dir) / "transcripts"
+    pattern = f"{model}/*.json" if model else "*/*.json"
+    return [read_transcript(p) for p in sorted(root.glob(pattern))]
