@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import asdict, dataclass, field
+from functools import cached_property
 from typing import Literal
 
 Role = Literal["system", "user", "assistant"]
@@ -26,8 +27,9 @@ class ImagePart:
     data: bytes
     mime: str = "image/png"
 
-    @property
+    @cached_property
     def sha256(self) -> str:
+        # cached: one frame's image is shared by many requests, and every cache key needs its hash
         return hashlib.sha256(self.data).hexdigest()
 
     def __repr__(self) -> str:  # keep logs and tracebacks free of megabytes of bytes

@@ -46,7 +46,7 @@ def cmd_manifest(args: argparse.Namespace) -> int:
 def cmd_record(args: argparse.Namespace) -> int:
     from vlmproprio.record.recorder import record_all
 
-    record_all(args.fixtures, episode_ids=args.episodes, contact_sheet=not args.no_contact_sheet)
+    record_all(args.fixtures, episode_ids=args.episodes, contact_sheets=args.contact_sheets)
     return 0
 
 
@@ -85,7 +85,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_fixtures(p)
     p.add_argument("--episodes", nargs="+", metavar="ID", help="only these episode ids (default: all 22)")
-    p.add_argument("--no-contact-sheet", action="store_true", help="skip writing contact sheets")
+    p.add_argument(
+        "--contact-sheets",
+        type=Path,
+        default=Path("runs/contact_sheets"),
+        help="folder for one contact sheet per episode (default: runs/contact_sheets)",
+    )
     p.set_defaults(func=cmd_record)
 
     return parser

@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# Create ./.venv and install vlmproprio with every extra, CPU-only.
+# torch is installed first and pinned: on this machine kind torch==2.13.0 is a local CPU wheel, while an
+# unpinned torch (asked for by transformers or sentence-transformers) would pull a multi-GB CUDA build.
+# Idempotent and quick on a second run: nothing is reinstalled while pyproject.toml is unchanged.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PYTHON=${PYTHON:-python3}
+TORCH_SPEC=${TORCH_SPEC:-torch==2.13.0}
+STAMP=.venv/.vlmproprio-installed
+
+want=$( (cat pyproject.toml; echo "$TORCH_SPEC") | sha256sum | cut -d' ' -f1)
+if [ -x .venv/bin/python ] && [ "$(cat "$STAMP" 2>/dev/null)" = "$want" ]; then
+  exit 0
+fi
+[ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
+pip_install() { .venv/bin/python -m pip install --quiet --disable-pip-version-check "$@" 2>&1 | grep -v -e "^WARNING: Location" -e "BuildBackendWarning" -e "return '\\\\n'.join" || true; }
+pip_install "$TORCH_SPEC"
+pip_install -e ".[all,dev]"
+.venv/bin/python -c "import torch, transformers, sentence_transformers, robosuite, vlmproprio" \
+  || { echo "setup: the install is incomplete (see pip's messages above)" >&2; exit 1; }
+if .venv/bin/python -c "import torchvision" 2>/dev/null; then
+  echo "setup: torchvision is installed in .venv; it breaks Qwen2-VL beside the CPU torch: remove it" >&2
+  exit 1
+fi
+echo "$want" > "$STAMP"
+echo "setup: .venv ready ($(.venv/bin/python -c 'import torch, transformers; print("torch", torch.__version__, "transformers", transformers.__version__)'))"
