@@ -211,6 +211,10 @@ def _entry_from_record(rec: object, *, model: str = "", identity: dict | None = 
             raise ValueError(f"field {name!r} missing or not a {typ.__name__}")
     if rec["status"] not in STATUSES:
         raise ValueError(f"unknown status {rec['status']!r}")
+    try:
+        AnswerMeta.from_dict(rec["meta"])
+    except TypeError as exc:
+        raise ValueError(f"field 'meta' is not answer metadata ({exc})") from None
     rec_model, rec_identity = rec.get("model", model), rec.get("identity", identity or {})
     return CacheEntry(
         key=rec["key"],
@@ -311,6 +315,9 @@ class ResponseCache:
 
     def keys(self) -> list[str]:
         return sorted(self._cache.iterkeys())
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.keys())
 
     def entries(self, model: str | None = None) -> Iterator[CacheEntry]:
         """Every valid entry (for ``model`` when given), sorted by key; corrupt ones are skipped with a warning."""

@@ -42,14 +42,14 @@ FAULT_KINDS: tuple[str, ...] = ("429", "500", "hang", "reset", "malformed", "emp
 @dataclass(frozen=True)
 class Fault:
     kind: FaultKind
-    retry_after: float | None = None  # seconds, for 429
+    retry_after: float | None = None  # seconds, sent as Retry-After with a 429 or 500
 
 
 @dataclass(frozen=True)
 class RecordedRequest:
     method: str
     path: str
-    headers: dict[str, str]
+    headers: dict[str, str]  # names in lower case
     body: dict | None
     fault: str | None  # the fault served to this request, None when answered normally
     received_at: float
@@ -96,6 +96,8 @@ class FakeOpenAIServer:
         self._requests: list[RecordedRequest] = []
         self._lock = threading.Lock()
         self._closing = threading.Event()
+        self._in_flight = 0
+        self.max_in_flight = 0  # the most chat requests handled at the same moment
         self._httpd = ThreadingHTTPServer((host, port), _make_handler(self))
         self._httpd.daemon_threads = True
         self._httpd.block_on_close = False  # a hanging handler must not block close()
@@ -152,6 +154,15 @@ class FakeOpenAIServer:
     def chat_requests(self) -> list[RecordedRequest]:
         return [r for r in self.requests if r.path.endswith("/chat/completions")]
 
+    def _enter(self) -> None:
+        with self._lock:
+            self._in_flight += 1
+            self.max_in_flight = max(self.max_in_flight, self._in_flight)
+
+    def _leave(self) -> None:
+        with self._lock:
+            self._in_flight -= 1
+
     def _next_fault(self) -> Fault | None:
         with self._lock:
             return self._faults.popleft() if self._faults else None
@@ -189,6 +200,10 @@ def _completion(body: dict, text: str) -> dict:
     }
 
 
+def _headers(handler: BaseHTTPRequestHandler) -> dict[str, str]:
+    return {k.lower(): v for k, v in handler.headers.items()}  # HTTP header names are case-insensitive
+
+
 def _make_handler(server: FakeOpenAIServer) -> type[BaseHTTPRequestHandler]:
     class Handler(BaseHTTPRequestHandler):
         protocol_version = "HTTP/1.1"  # keep-alive, like real servers; every response has Content-Length
@@ -217,13 +232,20 @@ def _make_handler(server: FakeOpenAIServer) -> type[BaseHTTPRequestHandler]:
             self.connection.close()
 
         def do_GET(self) -> None:
-            server._record(RecordedRequest("GET", self.path, dict(self.headers.items()), None, None, time.time()))
+            server._record(RecordedRequest("GET", self.path, _headers(self), None, None, time.time()))
             if self.path.rstrip("/").endswith("/models"):
                 self._send_json(200, {"object": "list", "data": [{"id": "fake", "object": "model", "owned_by": "me"}]})
             else:
                 self._send_json(404, {"error": {"message": f"no route {self.path}", "type": "not_found"}})
 
         def do_POST(self) -> None:
+            server._enter()
+            try:
+                self._post()
+            finally:
+                server._leave()
+
+        def _post(self) -> None:
             length = int(self.headers.get("Content-Length") or 0)
             raw = self.rfile.read(length) if length else b""
             try:
@@ -231,14 +253,12 @@ def _make_handler(server: FakeOpenAIServer) -> type[BaseHTTPRequestHandler]:
             except (UnicodeDecodeError, ValueError):
                 body = None
             if not self.path.rstrip("/").endswith("/chat/completions"):
-                server._record(RecordedRequest("POST", self.path, dict(self.headers.items()), body, None, time.time()))
+                server._record(RecordedRequest("POST", self.path, _headers(self), body, None, time.time()))
                 self._send_json(404, {"error": {"message": f"no route {self.path}", "type": "not_found"}})
                 return
             fault = server._next_fault()
             server._record(
-                RecordedRequest(
-                    "POST", self.path, dict(self.headers.items()), body, fault.kind if fault else None, time.time()
-                )
+                RecordedRequest("POST", self.path, _headers(self), body, fault.kind if fault else None, time.time())
             )
             if not isinstance(body, dict) or not isinstance(body.get("messages"), list):
                 self._send_json(400, {"error": {"message": "body must be JSON with 'messages'", "type": "invalid"}})
@@ -253,7 +273,10 @@ def _make_handler(server: FakeOpenAIServer) -> type[BaseHTTPRequestHandler]:
                     429, {"error": {"message": "rate limited (injected)", "type": "rate_limit"}}, headers=headers
                 )
             elif fault.kind == "500":
-                self._send_json(500, {"error": {"message": "internal error (injected)", "type": "server_error"}})
+                headers = {} if fault.retry_after is None else {"Retry-After": f"{fault.retry_after:g}"}
+                self._send_json(
+                    500, {"error": {"message": "internal error (injected)", "type": "server_error"}}, headers=headers
+                )
             elif fault.kind == "malformed":
                 self._send_bytes(200, b'{"id": "chatcmpl-broken", "choices": [{"index": 0, "message": {"conte')
             elif fault.kind == "empty":
