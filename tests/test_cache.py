@@ -396,14 +396,21 @@ def test_record_then_replay_from_the_cassette(tmp_path):
     before = path.read_bytes()
     write_cassette(path, "echo", IDENTITY, read_cassette(path).entries.values())
     assert path.read_bytes() == before
+    # re-recorded answers with the same text keep their old lines, even if the latency differs
+    slower = [replace(e, meta={**e.meta, "latency_s": 9.9}) for e in read_cassette(path).entries.values()]
+    write_cassette(path, "echo", IDENTITY, slower)
+    assert path.read_bytes() == before
 
 
 def test_cassette_merge_keeps_old_answers_and_refuses_another_identity(tmp_path):
     path, _requests = _recorded(tmp_path, 3)
     extra = CachedBackend(EchoBackend(), mode="record", model="echo")
     extra.answer([req(text="# Process 1\nnew one")])
+    before = path.read_text().splitlines()
     extra.export_cassette(path)
-    assert len(read_cassette(path).entries) == 4
+    after = path.read_text().splitlines()
+    assert len(read_cassette(path).entries) == 4 and len(after) == 5
+    assert set(before) <= set(after)  # the old lines are kept as they were
     with pytest.raises(CassetteError, match="recorded from"):
         write_cassette(path, "echo", {**IDENTITY, "revision": "r2"}, [])
 
@@ -480,7 +487,9 @@ def test_export_and_import_through_the_cli(tmp_path, capsys):
         )
         == 2
     )
-    assert "holds no answers" in capsys.readouterr().err
+    assert "holds no answers for model 'reference' (it holds: openai_echo (3))" in capsys.readouterr().err
+    assert main(["cassette", "export", "--model", "hf:../../etc", "--cache", str(tmp_path / "c1")]) == 2
+    assert "refused" in capsys.readouterr().err
 
 
 def test_export_refuses_mixed_identities(tmp_path):

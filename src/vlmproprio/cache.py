@@ -330,6 +330,13 @@ class ResponseCache:
             if entry is not None and (model is None or entry.model == model):
                 yield entry
 
+    def models(self) -> dict[str, int]:
+        """How many valid entries each model has."""
+        counts: dict[str, int] = {}
+        for e in self.entries():
+            counts[e.model] = counts.get(e.model, 0) + 1
+        return counts
+
     # -------------------------------------------------------------------------------- writing
     def add(self, entry: CacheEntry) -> bool:
         """Store ``entry`` unless its key is present; True when this call stored it."""
@@ -464,7 +471,9 @@ def write_cassette(
             )
         merged.update(old.entries)
     for e in entries:
-        merged[e.key] = e
+        old = merged.get(e.key)
+        if old is None or (old.text, old.status) != (e.text, e.status):
+            merged[e.key] = e  # an unchanged answer keeps its old line (and latency): re-recording diffs stay small
     lines = [canonical_json(cassette_header(model, ident))]
     lines += [canonical_json(merged[k].cassette_record()) for k in sorted(merged)]
     atomic_write_text(path, "\n".join(lines) + "\n")
@@ -475,7 +484,12 @@ def export_cassette(cache: ResponseCache, model: str, path: Path | str, *, merge
     """Write every cached answer of ``model`` (its slug as stored in the cache) to a cassette."""
     entries = list(cache.entries(model=model))
     if not entries:
-        raise CacheError(f"cache {cache.directory} holds no answers for model {model!r}; run it in live mode first")
+        present = cache.models()
+        listed = ", ".join(f"{m} ({n})" for m, n in sorted(present.items())) or "nothing"
+        raise CacheError(
+            f"cache {cache.directory} holds no answers for model {model!r} (it holds: {listed}); "
+            "run the model in live or record mode first"
+        )
     identities = {canonical_json(e.identity) for e in entries}
     if len(identities) > 1:
         listed = "; ".join(sorted(identities))
@@ -519,6 +533,8 @@ class CachedBackend:
     """
 
     def __init__(self, backend: Backend, *, mode: str, cache: ResponseCache | None = None, model: str = "") -> None:
+        """``model``: the model's slug (``registry.model_slug(name)``), stored with each answer so that
+        ``vlmproprio cassette export --model NAME`` finds them; defaults to the identity's model_id."""
         if mode not in MODES:
             raise UsageError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
         self.backend = backend
