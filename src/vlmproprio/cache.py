@@ -52,6 +52,7 @@ exception) are never stored.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import logging
@@ -236,7 +237,8 @@ def default_cache_dir() -> Path:
     return Path(env) if env else DEFAULT_CACHE_DIR
 
 
-def _json_only_disk():
+@functools.cache
+def _json_only_disk() -> type:
     """diskcache's JSONDisk, minus its pickle fallbacks: a cache file is data and must never run code."""
     import diskcache
     from diskcache.core import MODE_BINARY, MODE_RAW
