@@ -193,3 +193,23 @@ def test_registry_tiny_model_is_built_once_even_when_raced(vlmproprio_home, torc
     (results[0] / "config.json").write_text("{}")
     with pytest.raises(BackendError, match=r"differ from their build stamp \(config.json\)"):
         ensure_tiny_model("qwen2-vl")
+
+
+def test_decoding_is_plain_greedy_whatever_the_checkpoint_suggests(
+    tiny_qwen2vl_backend, tiny_qwen2vl_dir, tmp_path, request_factory, png_factory
+):
+    import json
+
+    from vlmproprio.backends.hf import HFBackend
+
+    # real Qwen2-VL checkpoints ship sampling settings and a repetition penalty in generation_config.json
+    qwenlike = shutil.copytree(tiny_qwen2vl_dir, tmp_path / "qwenlike")
+    gc = json.loads((qwenlike / "generation_config.json").read_text())
+    gc.update(do_sample=True, temperature=0.1, top_p=0.001, top_k=1, repetition_penalty=1.3)  # 1.05 in Qwen2-VL
+    (qwenlike / "generation_config.json").write_text(json.dumps(gc))
+    reqs = [
+        request_factory(P1_TEXT * (i + 1), (png_factory(i),), config=GenerationConfig(max_new_tokens=48))
+        for i in range(3)
+    ]
+    plain = [a.text for a in tiny_qwen2vl_backend.generate(reqs)]
+    assert [a.text for a in HFBackend(qwenlike, threads=1).generate(reqs)] == plain

@@ -13,7 +13,8 @@ gets the same revision on every machine.
 
 Batches are padded on the left, so every row's prompt ends where generation
 starts, and batched greedy outputs equal one-by-one outputs (a test checks it
-on the tiny model). All generation goes through ``_generate_batch``, the one
+on the tiny model). Decoding is plain greedy whatever the checkpoint's
+``generation_config.json`` suggests (no repetition penalty). All generation goes through ``_generate_batch``, the one
 place a batching scheduler or a static KV cache would go.
 
 Without torchvision (it cannot be installed next to the CPU torch used here),
@@ -45,6 +46,19 @@ DEVICES = ("cpu", "cuda", "auto")
 DTYPES = ("auto", "float32", "bfloat16", "float16")
 ATTN_IMPLEMENTATIONS = ("eager", "sdpa", "flash_attention_2", "flash_attention_3", "flex_attention")
 WEIGHT_SUFFIXES = (".safetensors", ".bin")
+# Plain greedy decoding. transformers fills every setting left unset from the checkpoint's generation_config.json,
+# and real checkpoints ship sampling and penalty settings (Qwen2-VL: repetition_penalty 1.05, top_k 1, ...), so
+# every setting that changes the chosen token is set here, to its neutral value.
+PURE_GREEDY: dict = dict(
+    do_sample=False,
+    num_beams=1,
+    repetition_penalty=1.0,
+    no_repeat_ngram_size=0,
+    encoder_repetition_penalty=1.0,
+    temperature=1.0,
+    top_k=None,
+    top_p=1.0,
+)
 _SNAPSHOT_RE = re.compile(r"models--(?P<org>[^/]+?)--(?P<name>[^/]+)/snapshots/(?P<commit>[0-9a-f]{40})/?$")
 _HF_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*(/[A-Za-z0-9][A-Za-z0-9._-]*)?$")
 
@@ -280,7 +294,7 @@ class HFBackend(Backend):
             k: (v.to(target, dtype=self.model.dtype) if torch.is_floating_point(v) else v.to(target))
             for k, v in inputs.items()
         }
-        gen = dict(max_new_tokens=cfg.max_new_tokens, do_sample=False, num_beams=1)
+        gen = dict(max_new_tokens=cfg.max_new_tokens, **PURE_GREEDY)
         if cfg.min_new_tokens:
             gen["min_new_tokens"] = cfg.min_new_tokens
         t0 = time.perf_counter()
