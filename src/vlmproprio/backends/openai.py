@@ -127,7 +127,7 @@ class OpenAIBackend(Backend):
                 i = futures[failed]
                 n_ok = sum(r is not None for r in results)
                 raise BackendError(
-                    self._scrub(f"{requests[i].tag}: {exc} ({n_ok} of {len(requests)} requests answered before it)"),
+                    self._scrub(f"{requests[i].tag}: {exc} ({n_ok} of {len(requests)} requests answered)"),
                     partial=results,
                 ) from None
             for f, i in futures.items():
