@@ -50,6 +50,34 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_make_tiny_model(args: argparse.Namespace) -> int:
+    import time
+
+    from vlmproprio.backends.tiny import build_tiny_model, file_hashes
+
+    t0 = time.perf_counter()
+    out = build_tiny_model(args.family, args.out, seed=args.seed)
+    size = sum((out / rel).stat().st_size for rel in file_hashes(out))
+    print(f"built tiny {args.family} (seed {args.seed}) in {out}: {size:,} bytes, {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def cmd_cassette(args: argparse.Namespace) -> int:
+    from vlmproprio.backends.registry import cassette_path, model_slug
+    from vlmproprio.cache import ResponseCache, default_cache_dir, export_cassette, import_cassette
+
+    cache_dir = args.cache or default_cache_dir()
+    with ResponseCache(cache_dir) as cache:
+        if args.action == "export":
+            path = args.out or cassette_path(args.model, args.cassette_dir)
+            path, n = export_cassette(cache, model_slug(args.model), path, merge=not args.replace)
+            print(f"wrote {n} answers of {args.model} to {path}")
+        else:
+            model, n = import_cassette(cache, args.cassette)
+            print(f"imported {n} new answers of {model} from {args.cassette} into {cache_dir}")
+    return 0
+
+
 # ---------------------------------------------------------------------------------------------- parser
 
 
@@ -92,6 +120,35 @@ def build_parser() -> argparse.ArgumentParser:
         help="folder for one contact sheet per episode (default: runs/contact_sheets)",
     )
     p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser(
+        "make-tiny-model",
+        help="build a tiny random VLM checkpoint for tests (offline, sha256-reproducible)",
+        description="Build a tiny random checkpoint (real architecture, ~1 MB, gibberish output) into a folder. "
+        "Usable as --model hf:DIR; the registry's tiny-* names build theirs on first use.",
+    )
+    p.add_argument("--family", required=True, help="qwen2-vl, qwen2.5-vl or llava")
+    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(func=cmd_make_tiny_model)
+
+    p = sub.add_parser("cassette", help="move recorded answers between the response cache and fixtures/responses/")
+    csub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
+    pe = csub.add_parser("export", help="cache -> fixtures/responses/<model>.jsonl (merged with what is there)")
+    pe.add_argument("--model", required=True, help="model name, as given to --model when the answers were made")
+    pe.add_argument(
+        "--cache", type=Path, help="response cache folder (default: $VLMPROPRIO_CACHE or ./.vlmproprio-cache/responses)"
+    )
+    pe.add_argument("--cassette-dir", type=Path, default=Path("fixtures/responses"))
+    pe.add_argument("--out", type=Path, help="cassette file (default: <cassette-dir>/<model slug>.jsonl)")
+    pe.add_argument("--replace", action="store_true", help="start the cassette anew instead of merging")
+    pe.set_defaults(func=cmd_cassette)
+    pi = csub.add_parser("import", help="cassette -> response cache")
+    pi.add_argument("cassette", type=Path, help="a .jsonl cassette")
+    pi.add_argument(
+        "--cache", type=Path, help="response cache folder (default: $VLMPROPRIO_CACHE or ./.vlmproprio-cache/responses)"
+    )
+    pi.set_defaults(func=cmd_cassette)
 
     return parser
 

@@ -17,12 +17,23 @@ from vlmproprio.errors import VlmproprioError
 
 
 class BackendError(VlmproprioError):
-    """A backend cannot answer (missing weights, unreachable server, ...). The message says what to do."""
+    """A backend cannot answer (missing weights, unreachable server, ...). The message says what to do.
+
+    ``partial`` holds, in request order, the answers the backend finished before it gave up (None for
+    the others), so the caller can keep them (a server that dies mid-batch loses nothing already answered).
+    """
+
+    def __init__(self, message: str, *, partial: Sequence[Answer | None] = ()) -> None:
+        super().__init__(message)
+        self.partial: list[Answer | None] = list(partial)
 
 
 class Backend(ABC):
     #: how many requests one ``generate`` call takes at most (the caller splits larger batches)
     max_batch_size: int = 1
+    #: False for backends that never run a model (cassette replay, the reference captioner): only these
+    #: may answer cache misses in replay mode
+    calls_model: bool = True
 
     @abstractmethod
     def identity(self) -> dict[str, str]:

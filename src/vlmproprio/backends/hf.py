@@ -1,0 +1,365 @@
+"""Open-weights VLMs through transformers (``AutoModelForImageTextToText`` + the model's processor).
+
+Offline only: weights come from a local folder or the local Hugging Face cache
+(``local_files_only``), never from the network. Decoding is greedy (the paper's
+temperature 0). dtype, device (``cpu``, ``cuda``, or ``auto`` = accelerate's
+device map) and the attention implementation are explicit settings; dtype and
+attention enter the cache key because they change the scores.
+
+Weights revision: the snapshot commit hash when the weights come from the HF
+cache, else ``sha256:<hex>`` over the weight files (``*.safetensors``,
+``*.bin``, by relative path), so a local folder, such as a tiny test model,
+gets the same revision on every machine.
+
+Batches are padded on the left, so every row's prompt ends where generation
+starts, and batched greedy outputs equal one-by-one outputs (a test checks it
+on the tiny model). Decoding is plain greedy whatever the checkpoint's
+``generation_config.json`` suggests (no repetition penalty). All generation goes through ``_generate_batch``, the one
+place a batching scheduler or a static KV cache would go.
+
+Without torchvision (it cannot be installed next to the CPU torch used here),
+``AutoProcessor`` fails for processors that also declare a video processor
+(Qwen2-VL, Qwen2.5-VL, LLaVA-OneVision). The fallback loads the same processor
+class without its video part: a local subclass whose sub-processor list leaves
+``video_processor`` out, loaded with the ordinary ``from_pretrained``. Nothing
+in transformers is patched. Images work exactly as with AutoProcessor; videos
+are not supported (vlmproprio sends none).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import io
+import json
+import os
+import re
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from vlmproprio.backends.base import Backend, BackendError
+from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart
+
+DEVICES = ("cpu", "cuda", "auto")
+DTYPES = ("auto", "float32", "bfloat16", "float16")
+ATTN_IMPLEMENTATIONS = ("eager", "sdpa", "flash_attention_2", "flash_attention_3", "flex_attention")
+WEIGHT_SUFFIXES = (".safetensors", ".bin")
+# Plain greedy decoding. transformers fills every setting left unset from the checkpoint's generation_config.json,
+# and real checkpoints ship sampling and penalty settings (Qwen2-VL: repetition_penalty 1.05, top_k 1, ...), so
+# every setting that changes the chosen token is set here, to its neutral value.
+PURE_GREEDY: dict = dict(
+    do_sample=False,
+    num_beams=1,
+    repetition_penalty=1.0,
+    no_repeat_ngram_size=0,
+    encoder_repetition_penalty=1.0,
+    temperature=1.0,
+    top_k=None,
+    top_p=1.0,
+)
+_SNAPSHOT_RE = re.compile(r"models--(?P<org>[^/]+?)--(?P<name>[^/]+)/snapshots/(?P<commit>[0-9a-f]{40})/?$")
+_HF_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*(/[A-Za-z0-9][A-Za-z0-9._-]*)?$")
+
+
+@dataclass(frozen=True)
+class ResolvedWeights:
+    path: Path
+    model_id: str
+    revision: str
+    source: str  # "hf-cache" | "local"
+
+
+def weights_sha256(folder: Path) -> str:
+    """sha256 over (relative path, sha256 of the bytes) of every weight file in ``folder``."""
+    files = sorted(p for p in Path(folder).rglob("*") if p.is_file() and p.name.endswith(WEIGHT_SUFFIXES))
+    if not files:
+        raise BackendError(f"{folder}: no weight files (*.safetensors or *.bin)")
+    h = hashlib.sha256()
+    for p in files:
+        fh = hashlib.sha256()
+        with open(p, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 22), b""):
+                fh.update(chunk)
+        h.update(f"{p.relative_to(folder).as_posix()}\0{fh.hexdigest()}\n".encode())
+    return "sha256:" + h.hexdigest()
+
+
+def how_to_provide(repo_id: str) -> str:
+    return (
+        f"download it on a machine with network (`hf download {repo_id}`, or "
+        f"`huggingface-cli download {repo_id}`) and copy the Hugging Face cache (~/.cache/huggingface/hub, "
+        "or $HF_HUB_CACHE) here; or pass a local folder as `hf:/path/to/folder`; or, without the model, "
+        "replay its recorded answers (--mode replay with a cassette in fixtures/responses/)"
+    )
+
+
+def resolve_weights(weights: str | Path, model_id: str | None = None) -> ResolvedWeights:
+    """Find weights offline: a local folder, or an HF repo id in the local HF cache."""
+    text = str(weights)
+    path = Path(text).expanduser()
+    if path.is_dir():
+        path = path.resolve()
+        m = _SNAPSHOT_RE.search(path.as_posix())
+        if m:  # a folder inside the HF cache: the commit hash is the revision
+            return ResolvedWeights(path, model_id or f"{m['org']}/{m['name']}", m["commit"], "hf-cache")
+        return ResolvedWeights(path, model_id or path.name, weights_sha256(path), "local")
+    if text.startswith(("/", ".", "~")) or not _HF_ID_RE.match(text):
+        raise BackendError(f"model folder {text} does not exist")
+    from huggingface_hub import snapshot_download
+    from huggingface_hub.errors import LocalEntryNotFoundError
+
+    try:
+        snap = Path(snapshot_download(text, local_files_only=True))
+    except (LocalEntryNotFoundError, FileNotFoundError, OSError) as exc:
+        raise BackendError(
+            f"weights for {text} are not in the local Hugging Face cache and downloads are off; " + how_to_provide(text)
+        ) from exc
+    return ResolvedWeights(snap, model_id or text, snap.name, "hf-cache")
+
+
+def hf_weights_available(weights: str) -> tuple[bool, str]:
+    """Whether ``weights`` (folder or HF id) can be loaded offline, and if not, how to get them."""
+    try:
+        r = resolve_weights(weights)
+    except BackendError as exc:
+        return False, str(exc)
+    return True, f"{r.source}: {r.path}"
+
+
+# ---------------------------------------------------------------------------------------------- processor
+
+
+def _processor_class_name(path: Path) -> str | None:
+    for name in ("processor_config.json", "preprocessor_config.json", "tokenizer_config.json"):
+        try:
+            data = json.loads((path / name).read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(data, dict) and isinstance(data.get("processor_class"), str):
+            return data["processor_class"]
+    from transformers import AutoConfig
+    from transformers.models.auto.processing_auto import PROCESSOR_MAPPING_NAMES
+
+    config = AutoConfig.from_pretrained(path, local_files_only=True)
+    return PROCESSOR_MAPPING_NAMES.get(config.model_type)
+
+
+@functools.cache
+def _image_only(processor_cls: type) -> type:
+    """``processor_cls`` without its video processor: ``from_pretrained`` then loads only image + text parts."""
+
+    def get_attributes(cls) -> list[str]:
+        return [a for a in super(sub, cls).get_attributes() if a != "video_processor"]
+
+    sub = type(f"{processor_cls.__name__}ImageOnly", (processor_cls,), {"get_attributes": classmethod(get_attributes)})
+    return sub
+
+
+def load_processor(path: Path):
+    """The model's processor; without torchvision, the same class minus its video processor."""
+    import transformers
+    from transformers import AutoProcessor
+    from transformers.utils import is_torchvision_available
+
+    name = None if is_torchvision_available() else _processor_class_name(path)
+    cls = getattr(transformers, name, None) if name else None
+    if cls is None or "video_processor" not in cls.get_attributes():
+        return AutoProcessor.from_pretrained(path, local_files_only=True), "AutoProcessor"
+    return _image_only(cls).from_pretrained(path, local_files_only=True), f"{name} without video processor"
+
+
+# ---------------------------------------------------------------------------------------------- backend
+
+
+class HFBackend(Backend):
+    """A transformers VLM, loaded on first use."""
+
+    def __init__(
+        self,
+        weights: str | Path,
+        *,
+        model_id: str | None = None,
+        dtype: str = "auto",
+        device: str = "cpu",
+        attn_implementation: str = "sdpa",
+        max_batch_size: int = 8,
+        threads: int | None = None,
+    ) -> None:
+        if device not in DEVICES and not re.fullmatch(r"cuda:\d+", device):
+            raise BackendError(f"unknown device {device!r}; choose cpu, cuda, cuda:N or auto")
+        if dtype not in DTYPES:
+            raise BackendError(f"unknown dtype {dtype!r}; choose from {', '.join(DTYPES)}")
+        if attn_implementation not in ATTN_IMPLEMENTATIONS:
+            raise BackendError(
+                f"unknown attention implementation {attn_implementation!r}; choose from {', '.join(ATTN_IMPLEMENTATIONS)}"
+            )
+        if max_batch_size < 1:
+            raise BackendError(f"max_batch_size must be >= 1, got {max_batch_size}")
+        self.weights = resolve_weights(weights, model_id)
+        self.device = device
+        self.dtype = _resolve_dtype(dtype, device)
+        self.attn_implementation = attn_implementation
+        self.max_batch_size = max_batch_size
+        self.threads = threads
+        self.model = None
+        self.processor = None
+        self.processor_via = ""
+
+    def identity(self) -> dict[str, str]:
+        return {
+            "backend": "hf",
+            "model_id": self.weights.model_id,
+            "revision": self.weights.revision,
+            "dtype": self.dtype,
+            "attn_implementation": self.attn_implementation,
+        }
+
+    # -------------------------------------------------------------------------------- loading
+    def load(self) -> None:
+        if self.model is not None:
+            return
+        os.environ.setdefault("HF_HUB_OFFLINE", "1")
+        import torch
+        from transformers import AutoModelForImageTextToText
+
+        if self.threads:
+            torch.set_num_threads(self.threads)
+        if self.device.startswith("cuda") and not torch.cuda.is_available():
+            raise BackendError(f"device {self.device!r} asked for, but torch sees no CUDA GPU; use --device cpu")
+        path = self.weights.path
+        try:
+            self.processor, self.processor_via = load_processor(path)
+            kwargs = dict(
+                dtype=getattr(torch, self.dtype), attn_implementation=self.attn_implementation, local_files_only=True
+            )
+            if self.device == "auto":
+                kwargs["device_map"] = "auto"  # accelerate spreads the layers over what is there
+            model = AutoModelForImageTextToText.from_pretrained(path, **kwargs)
+        except (OSError, ValueError, ImportError) as exc:
+            raise BackendError(f"cannot load {self.weights.model_id} from {path}: {type(exc).__name__}: {exc}") from exc
+        if self.device != "auto":
+            model = model.to(self.device)
+        self.model = model.eval()
+        tok = self.processor.tokenizer
+        tok.padding_side = "left"
+        if tok.pad_token_id is None:
+            tok.pad_token = tok.eos_token
+
+    def close(self) -> None:
+        self.model = None
+        self.processor = None
+
+    @property
+    def placement(self) -> str:
+        """Where the model runs, for the metadata: cpu, cuda:0, or the device map's devices."""
+        if self.model is None:
+            return self.device
+        hf_map = getattr(self.model, "hf_device_map", None)
+        if hf_map:
+            return ",".join(sorted({str(d) for d in hf_map.values()}))
+        return str(self.model.device)
+
+    # -------------------------------------------------------------------------------- generation
+    def generate(self, requests: Sequence[ChatRequest]) -> list[Answer]:
+        self.load()
+        out: list[Answer | None] = [None] * len(requests)
+        # requests with different decoding settings cannot share a generate() call
+        groups: dict[str, list[int]] = {}
+        for i, r in enumerate(requests):
+            if r.config.temperature != 0:
+                raise BackendError(
+                    f"{r.tag}: the hf backend decodes greedily (temperature 0, the paper's setting); "
+                    f"got temperature={r.config.temperature}"
+                )
+            groups.setdefault(json.dumps(r.config.to_dict(), sort_keys=True), []).append(i)
+        for idx in groups.values():
+            for start in range(0, len(idx), self.max_batch_size):
+                chunk = idx[start : start + self.max_batch_size]
+                for i, ans in zip(chunk, self._generate_batch([requests[i] for i in chunk]), strict=True):
+                    out[i] = ans
+        return out  # type: ignore[return-value]
+
+    def _generate_batch(self, requests: Sequence[ChatRequest]) -> list[Answer]:
+        """The one generation loop: same decoding settings, at most max_batch_size requests."""
+        import torch
+
+        cfg = requests[0].config
+        texts = [self._chat_text(r) for r in requests]
+        images = [_decode_image(img, r) for r in requests for img in r.images]
+        inputs = self.processor(images=images or None, text=texts, padding=True, return_tensors="pt")
+        target = self.model.device
+        inputs = {
+            k: (v.to(target, dtype=self.model.dtype) if torch.is_floating_point(v) else v.to(target))
+            for k, v in inputs.items()
+        }
+        gen = dict(max_new_tokens=cfg.max_new_tokens, **PURE_GREEDY)
+        if cfg.min_new_tokens:
+            gen["min_new_tokens"] = cfg.min_new_tokens
+        t0 = time.perf_counter()
+        with torch.inference_mode():
+            seq = self.model.generate(**inputs, **gen)
+        if target.type == "cuda":
+            torch.cuda.synchronize(target)
+        elapsed = time.perf_counter() - t0
+        prompt_len = inputs["input_ids"].shape[1]
+        new_tokens = seq[:, prompt_len:]
+        decoded = self.processor.tokenizer.batch_decode(new_tokens, skip_special_tokens=True)
+        prompt_counts = inputs["attention_mask"].sum(dim=1).tolist()
+        ends = _eos_ids(self.model)
+        answers = []
+        for row, text, n_prompt in zip(new_tokens.tolist(), decoded, prompt_counts, strict=True):
+            n_new = next((j for j, t in enumerate(row) if t in ends), len(row))
+            meta = AnswerMeta(
+                **self.identity(),
+                device=self.placement,
+                prompt_tokens=int(n_prompt),
+                completion_tokens=n_new,
+                latency_s=elapsed / len(requests),
+                extra={"batch_size": len(requests), "batch_latency_s": elapsed, "processor": self.processor_via},
+            )
+            answers.append(Answer(text=text.strip(), meta=meta))
+        return answers
+
+    def _chat_text(self, request: ChatRequest) -> str:
+        conversation = [
+            {
+                "role": m.role,
+                "content": [
+                    {"type": "image"} if isinstance(p, ImagePart) else {"type": "text", "text": p.text} for p in m.parts
+                ],
+            }
+            for m in request.messages
+        ]
+        return self.processor.apply_chat_template(conversation, add_generation_prompt=True, tokenize=False)
+
+
+def _eos_ids(model) -> set[int]:
+    eos = model.generation_config.eos_token_id
+    ids = set(eos if isinstance(eos, list) else [eos] if eos is not None else [])
+    if model.generation_config.pad_token_id is not None:
+        ids.add(model.generation_config.pad_token_id)
+    return ids
+
+
+def _decode_image(img: ImagePart, request: ChatRequest):
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(img.data)) as im:
+            return im.convert("RGB")
+    except (UnidentifiedImageError, OSError, ValueError) as exc:
+        raise BackendError(f"{request.tag}: cannot decode image {img.sha256[:12]} ({exc})") from exc
+
+
+def _resolve_dtype(dtype: str, device: str) -> str:
+    if dtype != "auto":
+        return dtype
+    if device == "cpu":
+        return "float32"
+    import torch
+
+    if torch.cuda.is_available() and torch.cuda.is_bf16_supported():
+        return "bfloat16"
+    return "float32"

@@ -1,0 +1,240 @@
+"""Any OpenAI-compatible chat-completions server through the official ``openai`` SDK.
+
+GPT-4V/4o (the paper used ``gpt-4-vision-preview`` at temperature 0), or a
+local vLLM / SGLang server via ``base_url``. Images go as base64 data URLs,
+decoding is temperature 0 with a fixed seed where the server supports it.
+
+Reliability. Retries are the SDK's own (``max_retries``): exponential backoff
+with jitter on 408/409/429/5xx, timeouts and connection errors, honouring
+``Retry-After``. The SDK does not retry a 200 whose body is not JSON, so this
+module retries that itself, with the same backoff. When a request still fails,
+the batch stops at once (queued requests are cancelled, so a dead server fails
+in seconds, not once per request) and a BackendError says what happened, with
+the answers already received attached (``BackendError.partial``) for the cache.
+
+Secrets. The API key is read from the environment only (``OPENAI_API_KEY`` or
+the variable named by ``api_key_env``) and handed to the SDK client; it is
+never stored in the identity, metadata, cache, cassettes, logs or messages.
+Error texts are scrubbed of it in case a server echoes it back.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import logging
+import os
+import random
+import threading
+import time
+from collections.abc import Sequence
+from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
+
+from vlmproprio.backends.base import Backend, BackendError
+from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart
+
+log = logging.getLogger(__name__)
+
+DEFAULT_KEY_ENV = "OPENAI_API_KEY"
+# What the SDK is given when a key-less local server (vLLM, SGLang) is used: it insists on some string.
+NO_KEY_PLACEHOLDER = "no-key"
+
+
+class OpenAIBackend(Backend):
+    """Chat completions with bounded concurrency; answers come back in request order."""
+
+    def __init__(
+        self,
+        model: str,
+        *,
+        base_url: str | None = None,
+        api_key_env: str = DEFAULT_KEY_ENV,
+        concurrency: int = 4,
+        timeout_s: float = 120.0,
+        max_retries: int = 4,
+        max_batch_size: int | None = None,
+        backoff_s: float = 0.5,
+    ) -> None:
+        if concurrency < 1:
+            raise BackendError(f"concurrency must be >= 1, got {concurrency}")
+        if not api_key_env.replace("_", "").isalnum():
+            raise BackendError(f"api_key_env must be an environment variable name, got {api_key_env!r}")
+        self.model = model
+        self.base_url = base_url
+        self.api_key_env = api_key_env
+        self.concurrency = concurrency
+        self.timeout_s = timeout_s
+        self.max_retries = max_retries
+        self.backoff_s = backoff_s
+        # enough requests per call to keep every worker busy, few enough that a crash loses little
+        self.max_batch_size = max_batch_size or max(16, 4 * concurrency)
+        key = os.environ.get(api_key_env)
+        if not key and base_url is None:
+            raise BackendError(
+                f"no API key: set the environment variable {api_key_env} (the key is read from the environment "
+                "only), or point --base-url at an OpenAI-compatible server that needs none"
+            )
+        self._secret = key or ""
+        self._client = None
+        self._client_lock = threading.Lock()
+        self._key_for_client = key or NO_KEY_PLACEHOLDER
+
+    def __repr__(self) -> str:  # never show the key, even by accident
+        return f"OpenAIBackend(model={self.model!r}, base_url={self.base_url!r}, concurrency={self.concurrency})"
+
+    def identity(self) -> dict[str, str]:
+        # The server URL is not part of the identity: a recording replays wherever the cassette goes.
+        return {"backend": "openai", "model_id": self.model, "revision": "", "dtype": "", "attn_implementation": ""}
+
+    @property
+    def client(self):
+        with self._client_lock:
+            if self._client is None:
+                import openai
+
+                self._client = openai.OpenAI(
+                    api_key=self._key_for_client,
+                    base_url=self.base_url,
+                    timeout=self.timeout_s,
+                    max_retries=self.max_retries,
+                )
+            return self._client
+
+    def close(self) -> None:
+        with self._client_lock:
+            if self._client is not None:
+                self._client.close()
+                self._client = None
+
+    # -------------------------------------------------------------------------------- generation
+    def generate(self, requests: Sequence[ChatRequest]) -> list[Answer]:
+        results: list[Answer | None] = [None] * len(requests)
+        if not requests:
+            return []
+        pool = ThreadPoolExecutor(max_workers=min(self.concurrency, len(requests)), thread_name_prefix="openai")
+        try:
+            futures = {pool.submit(self._one, r): i for i, r in enumerate(requests)}
+            done, _ = wait(futures, return_when=FIRST_EXCEPTION)
+            failed = next((f for f in done if f.exception() is not None), None)
+            if failed is not None:
+                pool.shutdown(wait=True, cancel_futures=True)  # drop the queue; let running requests finish
+                for f, i in futures.items():
+                    if f.done() and not f.cancelled() and f.exception() is None:
+                        results[i] = f.result()
+                exc = failed.exception()
+                if not isinstance(exc, BackendError):
+                    raise exc  # a bug, not a server fault: keep its traceback
+                i = futures[failed]
+                n_ok = sum(r is not None for r in results)
+                raise BackendError(
+                    self._scrub(f"{requests[i].tag}: {exc} ({n_ok} of {len(requests)} requests answered)"),
+                    partial=results,
+                ) from None
+            for f, i in futures.items():
+                results[i] = f.result()
+        finally:
+            pool.shutdown(wait=True, cancel_futures=True)
+        return results  # type: ignore[return-value]
+
+    def _one(self, request: ChatRequest) -> Answer:
+        import openai
+
+        body = self._body(request)
+        where = self.base_url or "the OpenAI API"
+        attempts = 1 + self.max_retries
+        for attempt in range(1, attempts + 1):
+            t0 = time.perf_counter()
+            try:
+                resp = self.client.chat.completions.create(**body)
+                text = resp.choices[0].message.content or ""
+            except (json.JSONDecodeError, openai.APIResponseValidationError, IndexError, AttributeError) as exc:
+                # a 200 whose body is not a chat completion: the SDK does not retry these
+                if attempt == attempts:
+                    raise BackendError(
+                        f"{where} kept answering with malformed responses ({attempts} tries): {type(exc).__name__}"
+                    ) from None
+                delay = min(self.backoff_s * 2 ** (attempt - 1), 8.0) * (1 - 0.25 * random.random())
+                log.info("malformed response from %s, retrying in %.2f s (%d of %d)", where, delay, attempt, attempts)
+                time.sleep(delay)
+                continue
+            except openai.APITimeoutError:
+                raise BackendError(
+                    f"{where} did not answer within {self.timeout_s:g} s ({attempts} tries); raise --timeout or check "
+                    "the server"
+                ) from None
+            except openai.APIConnectionError as exc:
+                cause = type(exc.__cause__).__name__ if exc.__cause__ else "connection error"
+                raise BackendError(
+                    f"cannot reach {where} ({cause}, {attempts} tries): is the server running and the URL right?"
+                ) from None
+            except openai.APIStatusError as exc:
+                detail = _error_detail(exc)
+                hint = {
+                    401: "check the API key in $" + self.api_key_env,
+                    403: "the key may lack access to this model",
+                    404: f"does the server serve model {self.model!r}?",
+                    429: "rate limited even after retries; lower --concurrency or wait",
+                }.get(exc.status_code, "")
+                retried = (
+                    f" after {attempts} tries" if exc.status_code in (408, 409, 429) or exc.status_code >= 500 else ""
+                )
+                raise BackendError(
+                    f"{where} answered HTTP {exc.status_code}{retried}: {detail}" + (f"; {hint}" if hint else "")
+                ) from None
+            latency = time.perf_counter() - t0
+            usage = resp.usage
+            meta = AnswerMeta(
+                **self.identity(),
+                device="remote",
+                prompt_tokens=int(getattr(usage, "prompt_tokens", 0) or 0),
+                completion_tokens=int(getattr(usage, "completion_tokens", 0) or 0),
+                latency_s=latency,
+                extra={
+                    "response_model": str(resp.model or ""),
+                    "system_fingerprint": str(resp.system_fingerprint or ""),
+                    "finish_reason": str(resp.choices[0].finish_reason or ""),
+                    "malformed_retries": attempt - 1,
+                },
+            )
+            return Answer(text=text.strip(), meta=meta)
+        raise AssertionError("unreachable")  # pragma: no cover
+
+    def _body(self, request: ChatRequest) -> dict:
+        cfg = request.config
+        body: dict = {
+            "model": self.model,
+            "messages": [_message(m) for m in request.messages],
+            "temperature": cfg.temperature,
+            "max_tokens": cfg.max_new_tokens,
+        }
+        if cfg.seed is not None:
+            body["seed"] = cfg.seed
+        if cfg.min_new_tokens:
+            body["extra_body"] = {"min_tokens": cfg.min_new_tokens}  # vLLM / SGLang extension
+        return body
+
+    def _scrub(self, text: str) -> str:
+        return text.replace(self._secret, "***") if self._secret else text
+
+
+def _message(m) -> dict:
+    if all(not isinstance(p, ImagePart) for p in m.parts):
+        return {"role": m.role, "content": m.text}
+    content = []
+    for p in m.parts:
+        if isinstance(p, ImagePart):
+            url = f"data:{p.mime};base64,{base64.b64encode(p.data).decode('ascii')}"
+            content.append({"type": "image_url", "image_url": {"url": url}})
+        else:
+            content.append({"type": "text", "text": p.text})
+    return {"role": m.role, "content": content}
+
+
+def _error_detail(exc) -> str:
+    body = getattr(exc, "body", None)
+    if isinstance(body, dict):
+        err = body.get("error", body)
+        msg = err.get("message") if isinstance(err, dict) else None
+        if isinstance(msg, str):
+            return msg[:300]
+    return str(getattr(exc, "message", "") or exc)[:300]

@@ -1,0 +1,265 @@
+"""Model names → backends.
+
+A model is named three ways:
+
+* a short registry name (``REGISTRY`` below, e.g. ``qwen2-vl``, ``gpt-4v``, ``tiny-qwen2-vl``, ``reference``);
+* ``hf:<local folder or Hugging Face repo id>``: any transformers VLM, offline;
+* ``openai:<model name>``: any model behind an OpenAI-compatible server (``--base-url`` for vLLM, SGLang).
+
+``model_slug(name)`` turns an accepted name into one safe path component (cassette
+file names, run-dir folders). ``create_backend`` builds the backend for a name and a
+mode; ``model_availability`` says whether a model can run here and, if not, how to
+get it (the benchmark skips unavailable cells with that reason).
+
+This module imports no heavy library: backends import theirs when they are built.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from vlmproprio.backends.base import Backend, BackendError
+from vlmproprio.cache import MODES
+from vlmproprio.errors import UsageError
+
+HF_PREFIX = "hf:"
+OPENAI_PREFIX = "openai:"
+TINY_PREFIX = "tiny:"
+DEFAULT_CASSETTE_DIR = Path("fixtures") / "responses"
+MAX_NAME_LEN = 200
+_SLUG_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}$")
+
+
+class ModelNameError(UsageError):
+    """A model name that is unknown or unsafe."""
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    name: str
+    backend: str  # "hf" | "openai" | "reference"
+    weights: str  # HF repo id or folder | OpenAI model name | "tiny:<family>" | "" (reference)
+    description: str
+
+
+REGISTRY: dict[str, ModelSpec] = {
+    s.name: s
+    for s in (
+        ModelSpec("qwen2-vl", "hf", "Qwen/Qwen2-VL-2B-Instruct", "Qwen2-VL 2B Instruct, open weights"),
+        ModelSpec("qwen2-vl-7b", "hf", "Qwen/Qwen2-VL-7B-Instruct", "Qwen2-VL 7B Instruct, open weights"),
+        ModelSpec("qwen2.5-vl", "hf", "Qwen/Qwen2.5-VL-3B-Instruct", "Qwen2.5-VL 3B Instruct, open weights"),
+        ModelSpec("qwen2.5-vl-7b", "hf", "Qwen/Qwen2.5-VL-7B-Instruct", "Qwen2.5-VL 7B Instruct, open weights"),
+        ModelSpec("llava", "hf", "llava-hf/llava-1.5-7b-hf", "LLaVA-1.5 7B (transformers port), open weights"),
+        ModelSpec(
+            "llava-onevision",
+            "hf",
+            "llava-hf/llava-onevision-qwen2-0.5b-ov-hf",
+            "LLaVA-OneVision 0.5B (transformers port), open weights",
+        ),
+        ModelSpec(
+            "gpt-4v",
+            "openai",
+            "gpt-4-vision-preview",
+            "GPT-4V, the paper's model, through the OpenAI API (it may no longer be served: replay its cassette)",
+        ),
+        ModelSpec("gpt-4o", "openai", "gpt-4o", "GPT-4o through the OpenAI API"),
+        ModelSpec("tiny-qwen2-vl", "hf", TINY_PREFIX + "qwen2-vl", "tiny random Qwen2-VL built locally; tests only"),
+        ModelSpec(
+            "tiny-qwen2.5-vl", "hf", TINY_PREFIX + "qwen2.5-vl", "tiny random Qwen2.5-VL built locally; tests only"
+        ),
+        ModelSpec("tiny-llava", "hf", TINY_PREFIX + "llava", "tiny random LLaVA built locally; tests only"),
+        ModelSpec(
+            "reference",
+            "reference",
+            "",
+            "rule-based motion-primitive captions from the state numbers; NOT a VLM (a baseline)",
+        ),
+    )
+}
+
+
+def format_registry() -> str:
+    """The registry as an aligned text table (name, backend, default weights)."""
+    rows = [("name", "backend", "default weights")] + [(s.name, s.backend, s.weights or "-") for s in REGISTRY.values()]
+    w0, w1 = (max(len(r[i]) for r in rows) for i in range(2))
+    return "\n".join(f"{a:<{w0}}  {b:<{w1}}  {c}" for a, b, c in rows)
+
+
+def _check_name(name: object) -> str:
+    if not isinstance(name, str) or not name.strip():
+        raise ModelNameError("empty model name")
+    if len(name) > MAX_NAME_LEN:
+        raise ModelNameError(f"model name longer than {MAX_NAME_LEN} characters")
+    if any(ord(c) < 32 or ord(c) == 127 for c in name):
+        raise ModelNameError(f"model name {name!r} contains control characters (NUL, newline, ...)")
+    if ".." in name or "\\" in name:
+        raise ModelNameError(f"model name {name!r} contains '..' or a backslash; refused (it could leave a folder)")
+    return name
+
+
+def parse_model_name(name: str) -> ModelSpec:
+    """The spec for any accepted model name; ModelNameError for unknown or unsafe names."""
+    _check_name(name)
+    for prefix, backend in ((HF_PREFIX, "hf"), (OPENAI_PREFIX, "openai")):
+        if name.startswith(prefix):
+            rest = name[len(prefix) :].strip()
+            if not rest:
+                raise ModelNameError(f"{name!r}: nothing after {prefix!r}")
+            return ModelSpec(name, backend, rest, f"{rest} ({'transformers' if backend == 'hf' else 'OpenAI API'})")
+    if name in REGISTRY:
+        return REGISTRY[name]
+    known = ", ".join(REGISTRY)
+    raise ModelNameError(f"unknown model {name!r}. Known: {known}; or hf:<folder or HF repo id>, openai:<model name>")
+
+
+def _sanitise(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("._-")
+
+
+def model_slug(name: str) -> str:
+    """One safe path component for a model name: registry names as they are, ``hf_…``/``openai_…`` otherwise."""
+    spec = parse_model_name(name)
+    if name in REGISTRY:
+        slug = name
+    elif spec.backend == "hf":
+        w = spec.weights.rstrip("/")
+        # a folder is named by its last part (its absolute path differs between machines), a repo id in full
+        looks_like_path = w.startswith(("/", ".", "~")) or w.count("/") > 1
+        slug = "hf_" + _sanitise(w.rsplit("/", 1)[-1] if looks_like_path else w)
+    else:
+        slug = "openai_" + _sanitise(spec.weights)
+    if not _SLUG_RE.match(slug) or ".." in slug or slug.rstrip("_") in ("hf", "openai"):
+        raise ModelNameError(f"model name {name!r} gives no usable file name ({slug!r})")
+    return slug
+
+
+def cassette_path(name: str, cassette_dir: Path | str = DEFAULT_CASSETTE_DIR) -> Path:
+    base = Path(cassette_dir)
+    path = base / f"{model_slug(name)}.jsonl"
+    if path.resolve().parent != base.resolve():  # belt and braces: a slug is one component
+        raise ModelNameError(f"model name {name!r} would leave {base}")
+    return path
+
+
+@dataclass(frozen=True)
+class BackendSettings:
+    """How to run a model. Only dtype and attn_implementation change answers (they are in the cache key)."""
+
+    device: str = "cpu"  # hf: cpu | cuda | cuda:N | auto (accelerate device map)
+    dtype: str = "auto"  # hf: auto (float32 on CPU, bfloat16 on GPU) | float32 | bfloat16 | float16
+    attn_implementation: str = "sdpa"  # hf: eager | sdpa | flash_attention_2 | ...
+    max_batch_size: int = 8  # hf: requests per generate() call
+    threads: int | None = None  # hf: torch threads (pin to 1 for bit-identical CPU runs)
+    base_url: str | None = None  # openai: server URL, e.g. http://127.0.0.1:8000/v1 for vLLM
+    api_key_env: str = "OPENAI_API_KEY"  # openai: the environment variable holding the key
+    concurrency: int = 4  # openai: requests in flight
+    timeout_s: float = 120.0  # openai: per request
+    max_retries: int = 4  # openai: retries on 429 / 5xx / timeouts / connection errors / malformed JSON
+    cassette_dir: Path = DEFAULT_CASSETTE_DIR  # replay: where <slug>.jsonl cassettes live
+    home: Path | None = None  # where tiny models are built ($VLMPROPRIO_HOME, ~/.cache/vlmproprio)
+    extra: dict = field(default_factory=dict)
+
+
+def _record_hint(name: str) -> str:
+    return (
+        f"record one where the model runs (`--model {name} --mode record`, then "
+        f"`vlmproprio cassette export --model {name}`)"
+    )
+
+
+def create_backend(name: str, mode: str = "live", settings: BackendSettings | None = None) -> Backend:
+    """The backend that answers for ``name`` in ``mode`` (replay: its cassette; reference: always itself)."""
+    settings = settings or BackendSettings()
+    if mode not in MODES:
+        raise UsageError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
+    spec = parse_model_name(name)
+    if spec.backend == "reference":
+        from vlmproprio.backends.reference import ReferenceBackend
+
+        return ReferenceBackend()  # deterministic rules, no model: the same in every mode
+    if mode == "replay":
+        from vlmproprio.backends.replay import ReplayBackend
+
+        path = cassette_path(name, settings.cassette_dir)
+        if not path.is_file():
+            raise BackendError(f"no cassette for model {name!r} at {path}; " + _record_hint(name))
+        return ReplayBackend(path, model=model_slug(name))
+    if spec.backend == "hf":
+        from vlmproprio.backends.hf import HFBackend
+
+        weights, model_id = spec.weights, None
+        if weights.startswith(TINY_PREFIX):
+            from vlmproprio.backends.tiny import ensure_tiny_model
+
+            weights, model_id = str(ensure_tiny_model(weights[len(TINY_PREFIX) :], settings.home)), spec.name
+        return HFBackend(
+            weights,
+            model_id=model_id,
+            dtype=settings.dtype,
+            device=settings.device,
+            attn_implementation=settings.attn_implementation,
+            max_batch_size=settings.max_batch_size,
+            threads=settings.threads,
+        )
+    from vlmproprio.backends.openai import OpenAIBackend
+
+    return OpenAIBackend(
+        spec.weights,
+        base_url=settings.base_url,
+        api_key_env=settings.api_key_env,
+        concurrency=settings.concurrency,
+        timeout_s=settings.timeout_s,
+        max_retries=settings.max_retries,
+    )
+
+
+@dataclass(frozen=True)
+class Availability:
+    available: bool
+    reason: str
+
+    def __bool__(self) -> bool:
+        return self.available
+
+
+def _missing_modules(*names: str) -> list[str]:
+    return [n for n in names if importlib.util.find_spec(n) is None]
+
+
+def model_availability(name: str, mode: str = "live", settings: BackendSettings | None = None) -> Availability:
+    """Whether ``name`` can run here in ``mode`` without building anything heavy, and why not.
+
+    Unknown or unsafe names raise ModelNameError: a typo is an error, not a skip.
+    """
+    settings = settings or BackendSettings()
+    if mode not in MODES:
+        raise UsageError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
+    spec = parse_model_name(name)
+    if spec.backend == "reference":
+        return Availability(True, "rule-based reference captioner (no model, always available)")
+    if mode == "replay":
+        path = cassette_path(name, settings.cassette_dir)
+        if path.is_file():
+            return Availability(True, f"cassette {path}")
+        return Availability(False, f"no cassette {path}; " + _record_hint(name))
+    if spec.backend == "hf":
+        missing = _missing_modules("torch", "transformers")
+        if missing:
+            return Availability(False, f"needs {', '.join(missing)}: pip install 'vlmproprio[hf]'")
+        if spec.weights.startswith(TINY_PREFIX):
+            return Availability(True, "tiny model, built locally on first use")
+        from vlmproprio.backends.hf import hf_weights_available
+
+        ok, why = hf_weights_available(spec.weights)
+        return Availability(ok, why)
+    if _missing_modules("openai"):
+        return Availability(False, "needs the openai SDK: pip install 'vlmproprio[openai]'")
+    if os.environ.get(settings.api_key_env) or settings.base_url:
+        return Availability(True, f"OpenAI-compatible server {settings.base_url or '(OpenAI API)'}")
+    return Availability(
+        False, f"set ${settings.api_key_env} (OpenAI API) or a --base-url of an OpenAI-compatible server"
+    )

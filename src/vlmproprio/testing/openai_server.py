@@ -1,0 +1,290 @@
+"""A small OpenAI-compatible chat-completions server on 127.0.0.1, for tests and benchmarks.
+
+It is a real HTTP server (stdlib ``ThreadingHTTPServer`` in a background
+thread), so the openai SDK talks to it exactly as it would to vLLM or the
+OpenAI API. Answers are deterministic: by default a digest of the request
+(model, messages, decoding settings), so equal requests get equal answers and
+a test can compute the expected text with :func:`expected_answer`.
+
+Faults are injected per request, first in first out::
+
+    with FakeOpenAIServer(latency_s=0.2) as server:
+        server.inject("429", times=2, retry_after=0.5)
+        server.inject("malformed")
+        client = openai.OpenAI(base_url=server.base_url, api_key="x")
+
+Fault kinds: ``429`` (rate limit, with ``Retry-After``), ``500``, ``hang``
+(no answer until the client gives up), ``reset`` (TCP reset before any
+response), ``malformed`` (HTTP 200 whose body is not JSON) and ``empty``
+(a valid completion with empty content). Every request the server saw, with
+its headers and body, is kept in :attr:`FakeOpenAIServer.requests`; nothing is
+logged or written to disk.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import socket
+import struct
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Literal
+
+FaultKind = Literal["429", "500", "hang", "reset", "malformed", "empty"]
+FAULT_KINDS: tuple[str, ...] = ("429", "500", "hang", "reset", "malformed", "empty")
+
+
+@dataclass(frozen=True)
+class Fault:
+    kind: FaultKind
+    retry_after: float | None = None  # seconds, sent as Retry-After with a 429 or 500
+
+
+@dataclass(frozen=True)
+class RecordedRequest:
+    method: str
+    path: str
+    headers: dict[str, str]  # names in lower case
+    body: dict | None
+    fault: str | None  # the fault served to this request, None when answered normally
+    received_at: float
+
+
+def request_digest(body: dict) -> str:
+    """sha256 over what determines an answer: model, messages and decoding settings."""
+    keep = {k: body.get(k) for k in ("model", "messages", "temperature", "seed", "max_tokens")}
+    blob = json.dumps(keep, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
+    return hashlib.sha256(blob.encode("utf-8")).hexdigest()
+
+
+def expected_answer(body: dict) -> str:
+    """The default deterministic answer for a chat-completions request body."""
+    n_images = sum(
+        1
+        for m in body.get("messages", [])
+        if isinstance(m.get("content"), list)
+        for part in m["content"]
+        if part.get("type") == "image_url"
+    )
+    return f"echo {request_digest(body)[:16]} ({n_images} images)"
+
+
+Responder = Callable[[dict], str]
+
+
+class FakeOpenAIServer:
+    """OpenAI-compatible ``/v1/chat/completions`` (and ``/v1/models``) on an ephemeral loopback port."""
+
+    def __init__(
+        self,
+        *,
+        latency_s: float = 0.0,
+        hang_s: float = 30.0,
+        responder: Responder | None = None,
+        host: str = "127.0.0.1",
+        port: int = 0,
+    ) -> None:
+        self.latency_s = latency_s
+        self.hang_s = hang_s
+        self.responder: Responder = responder or expected_answer
+        self._faults: deque[Fault] = deque()
+        self._requests: list[RecordedRequest] = []
+        self._lock = threading.Lock()
+        self._closing = threading.Event()
+        self._in_flight = 0
+        self.max_in_flight = 0  # the most chat requests handled at the same moment
+        self._httpd = ThreadingHTTPServer((host, port), _make_handler(self))
+        self._httpd.daemon_threads = True
+        self._httpd.block_on_close = False  # a hanging handler must not block close()
+        self._thread: threading.Thread | None = None
+
+    # -------------------------------------------------------------------------------- lifecycle
+    @property
+    def port(self) -> int:
+        return self._httpd.server_address[1]
+
+    @property
+    def base_url(self) -> str:
+        return f"http://127.0.0.1:{self.port}/v1"
+
+    def start(self) -> FakeOpenAIServer:
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._httpd.serve_forever, name="fake-openai", daemon=True)
+            self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._closing.set()
+        if self._thread is not None:
+            self._httpd.shutdown()
+        self._httpd.server_close()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+            self._thread = None
+
+    def __enter__(self) -> FakeOpenAIServer:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -------------------------------------------------------------------------------- faults and records
+    def inject(self, kind: FaultKind, times: int = 1, *, retry_after: float | None = None) -> None:
+        """Serve ``kind`` to the next ``times`` chat requests (after any faults already queued)."""
+        if kind not in FAULT_KINDS:
+            raise ValueError(f"unknown fault {kind!r}; choose from {', '.join(FAULT_KINDS)}")
+        with self._lock:
+            self._faults.extend(Fault(kind, retry_after) for _ in range(times))
+
+    def clear_faults(self) -> None:
+        with self._lock:
+            self._faults.clear()
+
+    @property
+    def requests(self) -> list[RecordedRequest]:
+        with self._lock:
+            return list(self._requests)
+
+    @property
+    def chat_requests(self) -> list[RecordedRequest]:
+        return [r for r in self.requests if r.path.endswith("/chat/completions")]
+
+    def _enter(self) -> None:
+        with self._lock:
+            self._in_flight += 1
+            self.max_in_flight = max(self.max_in_flight, self._in_flight)
+
+    def _leave(self) -> None:
+        with self._lock:
+            self._in_flight -= 1
+
+    def _next_fault(self) -> Fault | None:
+        with self._lock:
+            return self._faults.popleft() if self._faults else None
+
+    def _record(self, rec: RecordedRequest) -> None:
+        with self._lock:
+            self._requests.append(rec)
+
+
+def _completion(body: dict, text: str) -> dict:
+    prompt_words = sum(
+        len(str(part.get("text", "")).split())
+        for m in body.get("messages", [])
+        for part in (m["content"] if isinstance(m.get("content"), list) else [{"text": m.get("content", "")}])
+    )
+    return {
+        "id": "chatcmpl-" + request_digest(body)[:24],
+        "object": "chat.completion",
+        "created": 0,
+        "model": str(body.get("model", "")),
+        "system_fingerprint": "fake-openai-server",
+        "choices": [
+            {
+                "index": 0,
+                "message": {"role": "assistant", "content": text},
+                "finish_reason": "stop",
+                "logprobs": None,
+            }
+        ],
+        "usage": {
+            "prompt_tokens": prompt_words,
+            "completion_tokens": len(text.split()),
+            "total_tokens": prompt_words + len(text.split()),
+        },
+    }
+
+
+def _headers(handler: BaseHTTPRequestHandler) -> dict[str, str]:
+    return {k.lower(): v for k, v in handler.headers.items()}  # HTTP header names are case-insensitive
+
+
+def _make_handler(server: FakeOpenAIServer) -> type[BaseHTTPRequestHandler]:
+    class Handler(BaseHTTPRequestHandler):
+        protocol_version = "HTTP/1.1"  # keep-alive, like real servers; every response has Content-Length
+
+        def log_message(self, format: str, *args) -> None:
+            """Silent: request lines may carry anything, and tests want clean output."""
+
+        def _send_json(self, status: int, payload: object, headers: dict[str, str] | None = None) -> None:
+            data = json.dumps(payload).encode("utf-8")
+            self._send_bytes(status, data, headers)
+
+        def _send_bytes(self, status: int, data: bytes, headers: dict[str, str] | None = None) -> None:
+            self.send_response(status)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(data)))
+            for k, v in (headers or {}).items():
+                self.send_header(k, v)
+            self.end_headers()
+            self.wfile.write(data)
+
+        def _reset(self) -> None:
+            # SO_LINGER with a zero timeout turns close() into a TCP RST: the client sees "connection reset".
+            self.connection.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+            self.close_connection = True
+            self.rfile.close()
+            self.connection.close()
+
+        def do_GET(self) -> None:
+            server._record(RecordedRequest("GET", self.path, _headers(self), None, None, time.time()))
+            if self.path.rstrip("/").endswith("/models"):
+                self._send_json(200, {"object": "list", "data": [{"id": "fake", "object": "model", "owned_by": "me"}]})
+            else:
+                self._send_json(404, {"error": {"message": f"no route {self.path}", "type": "not_found"}})
+
+        def do_POST(self) -> None:
+            server._enter()
+            try:
+                self._post()
+            finally:
+                server._leave()
+
+        def _post(self) -> None:
+            length = int(self.headers.get("Content-Length") or 0)
+            raw = self.rfile.read(length) if length else b""
+            try:
+                body = json.loads(raw.decode("utf-8")) if raw else None
+            except (UnicodeDecodeError, ValueError):
+                body = None
+            if not self.path.rstrip("/").endswith("/chat/completions"):
+                server._record(RecordedRequest("POST", self.path, _headers(self), body, None, time.time()))
+                self._send_json(404, {"error": {"message": f"no route {self.path}", "type": "not_found"}})
+                return
+            fault = server._next_fault()
+            server._record(
+                RecordedRequest("POST", self.path, _headers(self), body, fault.kind if fault else None, time.time())
+            )
+            if not isinstance(body, dict) or not isinstance(body.get("messages"), list):
+                self._send_json(400, {"error": {"message": "body must be JSON with 'messages'", "type": "invalid"}})
+                return
+            if server.latency_s > 0 and server._closing.wait(server.latency_s):
+                return
+            if fault is None:
+                self._send_json(200, _completion(body, server.responder(body)))
+            elif fault.kind == "429":
+                headers = {} if fault.retry_after is None else {"Retry-After": f"{fault.retry_after:g}"}
+                self._send_json(
+                    429, {"error": {"message": "rate limited (injected)", "type": "rate_limit"}}, headers=headers
+                )
+            elif fault.kind == "500":
+                headers = {} if fault.retry_after is None else {"Retry-After": f"{fault.retry_after:g}"}
+                self._send_json(
+                    500, {"error": {"message": "internal error (injected)", "type": "server_error"}}, headers=headers
+                )
+            elif fault.kind == "malformed":
+                self._send_bytes(200, b'{"id": "chatcmpl-broken", "choices": [{"index": 0, "message": {"conte')
+            elif fault.kind == "empty":
+                self._send_json(200, _completion(body, ""))
+            elif fault.kind == "reset":
+                self._reset()
+            elif fault.kind == "hang":
+                server._closing.wait(server.hang_s)
+                self.close_connection = True
+
+    return Handler

@@ -1,0 +1,89 @@
+"""Shared fixtures: offline, single-threaded, a tiny Qwen2-VL checkpoint per session, request builders."""
+
+from __future__ import annotations
+
+import io
+import os
+
+# Before anything imports torch or huggingface_hub: no network, one thread (bit-identical floats).
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+
+import numpy as np
+import pytest
+
+from vlmproprio.chat import ChatRequest, GenerationConfig, ImagePart, Message, RequestTag, TextPart
+
+
+def png_bytes(seed: int, size: int = 64) -> bytes:
+    """A deterministic random RGB PNG."""
+    from PIL import Image
+
+    rgb = np.random.default_rng(seed).integers(0, 256, (size, size, 3), dtype=np.uint8)
+    buf = io.BytesIO()
+    Image.fromarray(rgb).save(buf, format="PNG")
+    return buf.getvalue()
+
+
+def make_request(
+    text: str = "# Process 1\nDescribe the frames.",
+    images: tuple[bytes, ...] = (),
+    *,
+    system: str | None = None,
+    config: GenerationConfig | None = None,
+    prompt_version: str = "test-1",
+    tag: RequestTag | None = None,
+) -> ChatRequest:
+    messages = []
+    if system is not None:
+        messages.append(Message("system", (TextPart(system),)))
+    messages.append(Message("user", (*tuple(ImagePart(b) for b in images), TextPart(text))))
+    return ChatRequest(
+        messages=tuple(messages),
+        config=config or GenerationConfig(max_new_tokens=8),
+        prompt_version=prompt_version,
+        tag=tag or RequestTag("door_00", "both", "p1", 0),
+    )
+
+
+@pytest.fixture
+def request_factory():
+    return make_request
+
+
+@pytest.fixture
+def png_factory():
+    return png_bytes
+
+
+@pytest.fixture(scope="session")
+def torch_one_thread():
+    torch = pytest.importorskip("torch", reason="the hf backend needs torch (pip install 'vlmproprio[hf]')")
+    torch.set_num_threads(1)
+    return torch
+
+
+@pytest.fixture(scope="session")
+def tiny_qwen2vl_dir(tmp_path_factory, torch_one_thread):
+    """A tiny random Qwen2-VL checkpoint, built once per test session (about 1 MB, well under a second)."""
+    from vlmproprio.backends.tiny import build_tiny_model
+
+    return build_tiny_model("qwen2-vl", tmp_path_factory.mktemp("tiny-qwen2-vl"))
+
+
+@pytest.fixture(scope="session")
+def tiny_qwen2vl_backend(tiny_qwen2vl_dir):
+    from vlmproprio.backends.hf import HFBackend
+
+    backend = HFBackend(tiny_qwen2vl_dir, model_id="tiny-qwen2-vl", device="cpu", dtype="float32", threads=1)
+    backend.load()
+    return backend
+
+
+@pytest.fixture
+def vlmproprio_home(tmp_path, monkeypatch):
+    """A private $VLMPROPRIO_HOME so registry tiny models are built in a temp folder."""
+    home = tmp_path / "home"
+    monkeypatch.setenv("VLMPROPRIO_HOME", str(home))
+    return home

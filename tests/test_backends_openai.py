@@ -1,0 +1,211 @@
+"""The OpenAI-compatible backend against a real HTTP server on 127.0.0.1, with injected faults."""
+
+from __future__ import annotations
+
+import base64
+import logging
+import secrets
+import time
+
+import pytest
+
+from vlmproprio.backends.base import BackendError
+from vlmproprio.cache import CachedBackend, ResponseCache, canonical_json
+from vlmproprio.chat import GenerationConfig, RequestTag
+from vlmproprio.testing.openai_server import FakeOpenAIServer, expected_answer
+
+pytest.importorskip("openai", reason="the openai backend needs the openai SDK (pip install 'vlmproprio[openai]')")
+
+KEY_ENV = "VLMPROPRIO_TEST_OPENAI_KEY"
+
+
+@pytest.fixture
+def server():
+    with FakeOpenAIServer() as s:
+        yield s
+
+
+@pytest.fixture
+def api_key(monkeypatch):
+    key = "sk-planted-" + secrets.token_hex(16)
+    monkeypatch.setenv(KEY_ENV, key)
+    return key
+
+
+def backend_for(server: FakeOpenAIServer, **kw):
+    from vlmproprio.backends.openai import OpenAIBackend
+
+    kw.setdefault("api_key_env", KEY_ENV)
+    kw.setdefault("max_retries", 2)
+    kw.setdefault("timeout_s", 5.0)
+    return OpenAIBackend("gpt-4o", base_url=server.base_url, **kw)
+
+
+def requests_for(request_factory, png_factory, n: int = 3):
+    return [
+        request_factory(
+            f"# Process 2\nGroup {i}: describe.",
+            (png_factory(i), png_factory(100 + i)),
+            system="You caption robot episodes.",
+            config=GenerationConfig(max_new_tokens=32, seed=7),
+            tag=RequestTag("door_01", "both", "p2", i),
+        )
+        for i in range(n)
+    ]
+
+
+def test_request_format_and_answers(server, api_key, request_factory, png_factory):
+    reqs = requests_for(request_factory, png_factory, 1)
+    answer = backend_for(server).generate(reqs)[0]
+    (seen,) = server.chat_requests
+    body = seen.body
+    assert answer.text == expected_answer(body)
+    assert seen.headers["authorization"] == f"Bearer {api_key}"
+    assert (body["model"], body["temperature"], body["seed"], body["max_tokens"]) == ("gpt-4o", 0.0, 7, 32)
+    system, user = body["messages"]
+    assert system == {"role": "system", "content": "You caption robot episodes."}
+    urls = [p["image_url"]["url"] for p in user["content"] if p["type"] == "image_url"]
+    assert [base64.b64decode(u.split(",", 1)[1]) for u in urls] == [png_factory(0), png_factory(100)]
+    assert all(u.startswith("data:image/png;base64,") for u in urls)
+    assert user["content"][-1] == {"type": "text", "text": "# Process 2\nGroup 0: describe."}
+    assert answer.meta.backend == "openai" and answer.meta.model_id == "gpt-4o"
+    assert answer.meta.completion_tokens == len(answer.text.split())
+
+
+def test_concurrency_is_bounded_and_order_kept(api_key, request_factory, png_factory):
+    reqs = requests_for(request_factory, png_factory, 8)
+    with FakeOpenAIServer(latency_s=0.2) as server:
+        t0 = time.perf_counter()
+        answers = backend_for(server, concurrency=4).generate(reqs)
+        elapsed = time.perf_counter() - t0
+        bodies = {canonical_json(r.body["messages"]): r.body for r in server.chat_requests}
+    assert server.max_in_flight == 4
+    assert 0.35 < elapsed < 1.2  # 8 x 0.2 s at 4 in flight: ~0.4 s, not 1.6 s
+    for r, a in zip(reqs, answers, strict=True):  # in request order, whatever order they finished in
+        group = r.tag.group
+        body = next(
+            b for b in bodies.values() if b["messages"][1]["content"][-1]["text"].endswith(f"{group}: describe.")
+        )
+        assert a.text == expected_answer(body)
+
+
+@pytest.mark.parametrize("fault", ["500", "reset", "malformed", "hang"])
+def test_transient_faults_are_retried(server, api_key, request_factory, png_factory, fault):
+    server.hang_s = 3.0
+    server.inject(fault)
+    answer = backend_for(server, timeout_s=0.5).generate(requests_for(request_factory, png_factory, 1))[0]
+    seen = server.chat_requests
+    assert [r.fault for r in seen] == [fault, None]
+    assert answer.text == expected_answer(seen[-1].body)
+    assert answer.meta.extra["malformed_retries"] == (1 if fault == "malformed" else 0)
+
+
+def test_429_honours_retry_after(server, api_key, request_factory, png_factory):
+    server.inject("429", retry_after=0.8)
+    t0 = time.perf_counter()
+    answer = backend_for(server).generate(requests_for(request_factory, png_factory, 1))[0]
+    elapsed = time.perf_counter() - t0
+    seen = server.chat_requests
+    assert [r.fault for r in seen] == ["429", None]
+    assert seen[1].received_at - seen[0].received_at >= 0.75  # waited as told, not the default 0.5 s backoff
+    assert elapsed >= 0.75 and answer.text == expected_answer(seen[-1].body)
+
+
+@pytest.mark.parametrize(
+    ("fault", "match"),
+    [
+        ("500", r"HTTP 500 after 3 tries: internal error \(injected\)"),
+        ("429", r"HTTP 429 after 3 tries.*lower --concurrency"),
+        ("malformed", r"malformed responses \(3 tries\)"),
+        ("hang", r"did not answer within 0.3 s \(3 tries\)"),
+        ("reset", r"cannot reach http://127.0.0.1:\d+/v1 \(\w+, 3 tries\)"),
+    ],
+)
+def test_persistent_faults_end_in_a_clear_error(server, api_key, request_factory, png_factory, fault, match):
+    server.hang_s = 2.0
+    server.inject(fault, times=10, retry_after=0.05)
+    with pytest.raises(BackendError, match=match) as info:
+        backend_for(server, max_retries=2, timeout_s=0.3, backoff_s=0.05).generate(
+            requests_for(request_factory, png_factory, 1)
+        )
+    assert len(server.chat_requests) == 3  # one try + two retries, then it gives up
+    assert "door_01" in str(info.value)  # names the request
+
+
+def test_dead_server_fails_fast(api_key, request_factory, png_factory):
+    dead = FakeOpenAIServer()
+    dead.close()  # nothing listens on its port any more
+    reqs = requests_for(request_factory, png_factory, 20)
+    t0 = time.perf_counter()
+    with pytest.raises(BackendError, match=r"cannot reach http://127\.0\.0\.1:\d+/v1 \(ConnectError") as info:
+        backend_for(dead, max_retries=2, concurrency=4).generate(reqs)
+    assert time.perf_counter() - t0 < 6.0  # ~1.5 s of backoff, once, not once per request
+    assert "0 of 20 requests answered" in str(info.value)
+
+
+def test_server_dying_mid_run_keeps_what_was_answered(api_key, request_factory, png_factory, tmp_path):
+    served = []
+
+    def responder(body: dict) -> str:
+        served.append(1)
+        if len(served) == 4:
+            server.inject("500", times=1000)  # from the fifth request on, the server is broken
+        return expected_answer(body)
+
+    reqs = requests_for(request_factory, png_factory, 8)
+    with FakeOpenAIServer(responder=responder) as server, ResponseCache(tmp_path / "c") as cache:
+        cached = CachedBackend(backend_for(server, concurrency=1, max_retries=0), mode="live", cache=cache)
+        with pytest.raises(BackendError, match="4 of 8 requests answered"):
+            cached.answer(reqs)
+        assert len(cache) == 4
+        server.clear_faults()
+        answers = cached.answer(reqs)  # resumed: only the missing four go to the server
+    assert [a.from_cache for a in answers] == [True] * 4 + [False] * 4
+    assert len(served) == 8
+
+
+def test_missing_key_is_a_clear_error(monkeypatch):
+    from vlmproprio.backends.openai import OpenAIBackend
+
+    monkeypatch.delenv(KEY_ENV, raising=False)
+    with pytest.raises(BackendError, match=f"set the environment variable {KEY_ENV}"):
+        OpenAIBackend("gpt-4o", api_key_env=KEY_ENV)
+    # a local key-less server (vLLM) is fine without one
+    assert OpenAIBackend("m", api_key_env=KEY_ENV, base_url="http://127.0.0.1:9/v1").identity()["model_id"] == "m"
+
+
+def test_planted_api_key_never_reaches_any_file(api_key, request_factory, png_factory, tmp_path):
+    log_path = tmp_path / "run.log"
+    handler = logging.FileHandler(log_path)
+    handler.setLevel(logging.DEBUG)
+    root = logging.getLogger()
+    old_level = root.level
+    root.addHandler(handler)
+    root.setLevel(logging.DEBUG)  # everything the SDK, httpx and we log, at the most verbose level
+    try:
+        reqs = requests_for(request_factory, png_factory, 4)
+        with FakeOpenAIServer() as server, ResponseCache(tmp_path / "cache") as cache:
+            for fault in ("429", "500", "malformed", "reset"):
+                server.inject(fault, retry_after=0.05)
+            backend = backend_for(server, max_retries=3, backoff_s=0.05)
+            cached = CachedBackend(backend, mode="record", cache=cache, model="gpt-4o")
+            answers = cached.answer(reqs)
+            cassette = cached.export_cassette(tmp_path / "responses" / "gpt-4o.jsonl")
+            server.inject("500", times=10)
+            with pytest.raises(BackendError) as info:
+                backend_for(server, max_retries=1, backoff_s=0.05).generate([request_factory("# Process 3\nx", ())])
+            logging.getLogger("test").error("final error: %s | %r | %s", info.value, backend, backend.identity())
+            logging.getLogger("test").error("answers: %s", [a.meta for a in answers])
+            decoded = [canonical_json(cache._cache.get(k)) for k in cache]
+            saw_key = [r.headers.get("authorization") for r in server.chat_requests]
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(old_level)
+        handler.close()
+    assert f"Bearer {api_key}" in saw_key  # the key was really used ...
+    assert len(decoded) == 4 and cassette.exists() and log_path.stat().st_size > 0
+    files = [p for p in tmp_path.rglob("*") if p.is_file()]
+    leaked = [p for p in files if api_key.encode() in p.read_bytes()]
+    assert leaked == []  # ... and is in no file: cache database, cassette, log
+    assert not any(api_key in d for d in decoded)  # nor in the (compressed) cache values
+    assert api_key not in str(info.value) and api_key not in repr(backend)
