@@ -12,7 +12,7 @@ import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from vlmproprio.errors import VlmproprioError
+from vlmproprio.errors import UsageError, VlmproprioError
 
 DEFAULT_FIXTURES = Path("fixtures")
 
@@ -78,6 +78,74 @@ def cmd_cassette(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_models(args: argparse.Namespace) -> int:
+    from vlmproprio.backends.registry import format_registry
+
+    print(format_registry())
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from vlmproprio.backends.registry import BackendSettings
+    from vlmproprio.chat import GenerationConfig
+    from vlmproprio.conditions import parse_conditions
+    from vlmproprio.pipeline import PipelineSettings
+    from vlmproprio.prompts import PromptOptions
+    from vlmproprio.runner import RunPlan, run
+
+    if args.max_new_tokens < 1:
+        raise UsageError(f"--max-new-tokens must be at least 1, got {args.max_new_tokens}")
+    plan = RunPlan(
+        models=tuple(args.model),
+        conditions=tuple(parse_conditions(args.conditions)),
+        fixtures=args.fixtures,
+        out=args.out or Path("runs") / "latest",
+        episode_ids=tuple(args.episodes) if args.episodes else None,
+        mode=args.mode,
+        cache_dir=args.cache_dir,
+        pipeline=PipelineSettings(
+            k=args.k,
+            frame_stride=args.frame_stride,
+            max_images_p3=args.max_images_p3,
+            prompt=PromptOptions(example=not args.no_example),
+            generation=GenerationConfig(max_new_tokens=args.max_new_tokens),
+        ),
+        backend=BackendSettings(
+            device=args.device,
+            dtype=args.dtype,
+            attn_implementation=args.attn,
+            max_batch_size=args.batch_size,
+            threads=args.threads,
+            base_url=args.base_url,
+            api_key_env=args.api_key_env,
+            concurrency=args.concurrency,
+            timeout_s=args.timeout,
+        ),
+        progress=not args.no_progress,
+    )
+    runs = run(plan)
+    for r in runs:
+        s = r.stats
+        print(
+            f"{r.name}: {len(r.transcripts)} transcripts in {plan.out}, "
+            f"{s.get('hits', 0)} cached answers, {s.get('misses', 0)} model calls"
+            + (f", cassette {r.cassette}" if r.cassette else "")
+        )
+    if args.report:
+        return _score_and_report(plan.out, args.fixtures)
+    return 0
+
+
+def _score_and_report(run_dir: Path, fixtures: Path | None) -> int:
+    from vlmproprio.report import write_report
+    from vlmproprio.scoring import score_run
+
+    score_run(run_dir, fixtures=fixtures)
+    index = write_report(run_dir)
+    print(f"report: {index}")
+    return 0
+
+
 # ---------------------------------------------------------------------------------------------- parser
 
 
@@ -131,6 +199,65 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--seed", type=int, default=0)
     p.set_defaults(func=cmd_make_tiny_model)
+
+    p = sub.add_parser(
+        "run",
+        help="caption episodes with a model under each condition (Processes 1-3)",
+        description="Run the paper's captioning method: for every episode and condition, Process 1 (a caption "
+        "per frame, in groups of k), Process 2 (a scene caption per group) and Process 3 (one final "
+        "instruction). Answers are cached by content, so an interrupted run resumes where it stopped.",
+    )
+    _add_fixtures(p)
+    p.add_argument(
+        "--model",
+        action="append",
+        required=True,
+        help="registry name, hf:<path|id> or openai:<name>; repeat for several (see `vlmproprio models`)",
+    )
+    p.add_argument(
+        "--conditions",
+        default="all",
+        help="comma list of none, ee, joint, both, both_shuffled, "
+        "both_noisy, state_only, primitives; or paper, controls, all (default: all)",
+    )
+    p.add_argument("--episodes", nargs="+", metavar="ID", help="episode ids (default: every episode in --fixtures)")
+    p.add_argument(
+        "--mode",
+        choices=("live", "record", "replay"),
+        default="live",
+        help="live: run the model, use and fill the cache (default); record: live and write the answers "
+        "to <fixtures>/responses/<model>.jsonl; replay: answers only from that cassette",
+    )
+    p.add_argument("--out", type=Path, help="run directory (default: runs/latest)")
+    p.add_argument("--cache-dir", type=Path, help="response cache (default: $VLMPROPRIO_CACHE or ./.vlmproprio-cache)")
+    p.add_argument("--report", action="store_true", help="also score the run and write its report")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    g = p.add_argument_group("method")
+    g.add_argument("--k", type=int, default=5, help="frames per group (default 5, the paper's)")
+    g.add_argument(
+        "--frame-stride",
+        type=int,
+        default=1,
+        help="use every n-th sampled frame (default 1: every 20 sim steps, the paper's)",
+    )
+    g.add_argument("--max-images-p3", type=int, help="cap on images in Process 3 for small-context models")
+    g.add_argument("--no-example", action="store_true", help="leave the worked cube-stacking example out")
+    g.add_argument("--max-new-tokens", type=int, default=512, help="per answer (default 512)")
+    g = p.add_argument_group("local models (hf)")
+    g.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N | auto (default cpu)")
+    g.add_argument("--dtype", default="auto", help="auto | float32 | bfloat16 | float16 (default auto)")
+    g.add_argument("--attn", default="sdpa", help="attention implementation: eager | sdpa | flash_attention_2")
+    g.add_argument("--batch-size", type=int, default=8, help="requests per generate() call (default 8)")
+    g.add_argument("--threads", type=int, help="torch threads (pin to 1 for bit-identical CPU runs)")
+    g = p.add_argument_group("OpenAI-compatible servers (openai)")
+    g.add_argument("--base-url", help="server URL, e.g. http://127.0.0.1:8000/v1 for vLLM (default: OpenAI)")
+    g.add_argument("--api-key-env", default="OPENAI_API_KEY", help="environment variable holding the key")
+    g.add_argument("--concurrency", type=int, default=4, help="requests in flight (default 4)")
+    g.add_argument("--timeout", type=float, default=120.0, help="seconds per request (default 120)")
+    p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser("models", help="list the model registry")
+    p.set_defaults(func=cmd_models)
 
     p = sub.add_parser("cassette", help="move recorded answers between the response cache and fixtures/responses/")
     csub = p.add_subparsers(dest="action", metavar="ACTION", required=True)

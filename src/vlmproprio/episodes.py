@@ -222,6 +222,25 @@ def write_manifest(root: Path) -> Path:
     return path
 
 
+def update_manifest(root: Path, rel_paths: Iterable[str]) -> Path:
+    """Re-hash only the named files (dropping those that no longer exist).
+
+    Writing a cassette must not bless unrelated changes elsewhere in the fixtures, which rewriting the
+    whole manifest would do."""
+    root = Path(root)
+    files = dict(read_manifest(root))
+    for rel in rel_paths:
+        path = root / rel
+        if path.is_file():
+            files[rel] = sha256_file(path)
+        else:
+            files.pop(rel, None)
+    path = root / MANIFEST_NAME
+    doc = {"format_version": FORMAT_VERSION, "files": dict(sorted(files.items()))}
+    atomic_write_text(path, json.dumps(doc, indent=1, sort_keys=True) + "\n")
+    return path
+
+
 def read_manifest(root: Path) -> dict[str, str]:
     path = Path(root) / MANIFEST_NAME
     if not path.is_file():

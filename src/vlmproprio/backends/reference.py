@@ -205,7 +205,9 @@ def reference_answer(request: ChatRequest) -> str:
     """The reference captioner's answer to one request (see the module docstring)."""
     text = "\n".join(m.text for m in request.messages)
     process = process_number(text)
-    states = parse_state_lines(text)
+    # Only the states after the '# Process N' line belong to this episode: the worked example in the
+    # preamble before it has state lines of its own.
+    states = parse_state_lines(text[PROCESS_RE.search(text).end() :])
     if process == 1:
         by_number = {s.number: s for s in states}
         k = max([len(request.images), *by_number.keys()])

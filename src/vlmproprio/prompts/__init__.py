@@ -143,6 +143,9 @@ def _frames_parts(frames: Sequence[FrameView], label: str = "Image") -> list[Par
 
 
 def _user(parts: Sequence[Part]) -> tuple[Message, ...]:
+    # Chat templates concatenate text items as they are: end each with a line break so that sections,
+    # state lines and labels never run into each other.
+    parts = [TextPart(p.text + "\n") if isinstance(p, TextPart) and not p.text.endswith("\n") else p for p in parts]
     return (Message("user", tuple(parts)),)
 
 

@@ -44,8 +44,8 @@ class Style:
     @classmethod
     def sample(cls, rng: np.random.Generator) -> Style:
         return cls(
-            speed=float(rng.uniform(0.012, 0.017)),
-            rot_speed=float(rng.uniform(0.085, 0.12)),
+            speed=float(rng.uniform(0.0115, 0.0163)),
+            rot_speed=float(rng.uniform(0.081, 0.115)),
             gain=float(rng.uniform(0.10, 0.16)),
             tremor=float(rng.uniform(0.0004, 0.0010)),
             pause=(int(rng.integers(5, 10)), int(rng.integers(14, 26))),
