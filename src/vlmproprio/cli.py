@@ -50,6 +50,27 @@ def cmd_record(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_score(args: argparse.Namespace) -> int:
+    from vlmproprio.embeddings import encoder_spec
+    from vlmproprio.evaluation import score_run
+
+    spec = encoder_spec(args.encoder, batch_size=args.encoder_batch_size, threads=args.encoder_threads)
+    tables = score_run(
+        args.run_dir,
+        fixtures=args.fixtures,
+        encoder=spec,
+        embedding_cache=args.embedding_cache,
+        threshold=args.threshold,
+    )
+    t = tables.timing
+    e = t["embeddings"]
+    print(
+        f"scored {len(tables.rows)} transcripts into {args.run_dir / 'scores'} in {t['total_s']:.1f} s "
+        f"(embeddings: {e['cached']} cached, {e['computed']} computed)"
+    )
+    return 0
+
+
 # ---------------------------------------------------------------------------------------------- parser
 
 
@@ -87,6 +108,26 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", nargs="+", metavar="ID", help="only these episode ids (default: all 22)")
     p.add_argument("--no-contact-sheet", action="store_true", help="skip writing contact sheets")
     p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser(
+        "score",
+        help="score a run: caption rubric, segmentation sweep, paired statistics -> RUN_DIR/scores/",
+        description="Score every transcript of a run against the fixtures' ground truth and write tables "
+        "(rows, aggregate, threshold sweep, paired statistics, audit) to RUN_DIR/scores/. Frame-caption "
+        "embeddings are cached in RUN_DIR/embeddings, so re-scoring needs no torch.",
+    )
+    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory written by `vlmproprio run`")
+    p.add_argument("--fixtures", type=Path, default=None, help="fixture folder (default: the one in RUN_DIR/run.json)")
+    p.add_argument("--threshold", type=float, default=0.65, help="similarity threshold for boundaries (default 0.65)")
+    p.add_argument(
+        "--encoder", default=None, metavar="PATH", help="local sentence-transformers folder (default: all-MiniLM-L6-v2)"
+    )
+    p.add_argument("--encoder-batch-size", type=int, default=8, help="fixed encoder batch size (part of the cache key)")
+    p.add_argument("--encoder-threads", type=int, default=2, help="torch threads while encoding (default 2)")
+    p.add_argument(
+        "--embedding-cache", type=Path, default=None, help="embedding cache folder (default RUN_DIR/embeddings)"
+    )
+    p.set_defaults(func=cmd_score)
 
     return parser
 
