@@ -286,3 +286,36 @@ def write_synthetic_run(
     manifest = {"fixtures": str(fixtures), "models": [model], "conditions": list(conditions), "episodes": ids}
     (run_dir / "run.json").write_text(json.dumps(manifest, indent=1) + "\n")
     return ids
+
+
+# ---------------------------------------------------------------------------------------------- fake embeddings
+
+
+def fake_vector(text: str, dim: int = 16) -> np.ndarray:
+    """A deterministic stand-in embedding: captions that start alike point alike (phase templates)."""
+    import hashlib
+
+    head = " ".join(text.split()[:6])
+    bucket = int(hashlib.sha256(head.encode()).hexdigest(), 16) % dim
+    noise = np.frombuffer(hashlib.sha256(text.encode()).digest()[:dim], dtype=np.uint8).astype(np.float32) / 255.0
+    v = 0.25 * noise
+    v[bucket] += 1.0
+    return v.astype(np.float32)
+
+
+def prefill_embeddings(run_dir: Path, encoder_key: str, cache_dir: Path | None = None, dim: int = 16) -> int:
+    """Put a fake vector for every frame caption of the run into the embedding cache; returns how many."""
+    from vlmproprio.embeddings import EmbeddingStore
+    from vlmproprio.transcripts import read_transcripts
+
+    texts = {f.text for t in read_transcripts(run_dir) for f in t.frames if f.text.strip() and f.status != "missing"}
+    with EmbeddingStore(cache_dir or run_dir / "embeddings") as store:
+        store.put_many(encoder_key, {t: fake_vector(t, dim) for t in sorted(texts)})
+    return len(texts)
+
+
+def fake_spec():
+    """An encoder that cannot be loaded: any attempt to compute an embedding fails loudly."""
+    from vlmproprio.embeddings import EncoderSpec
+
+    return EncoderSpec(name="fake-encoder", path="/nonexistent/fake-encoder", revision="test-1")

