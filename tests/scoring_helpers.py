@@ -7,6 +7,7 @@ know what the right scores are.
 from __future__ import annotations
 
 import json
+import zlib
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -186,7 +187,7 @@ def write_fixture_episode(root: Path, episode_id: str, task: str, n_frames: int,
     write_episode(root, meta, [img] * n_frames, states)
 
 
-def _frame_caption(task: str, phase: str, direction: str, cond: str, ee: Sequence[float], i: int) -> str:
+def _frame_caption(task: str, phase: str, direction: str, cond: str, ee: Sequence[float], i: int, eid: str = "") -> str:
     words = direction.replace("+", " and ")
     if task == "door":
         base = {
@@ -209,7 +210,8 @@ def _frame_caption(task: str, phase: str, direction: str, cond: str, ee: Sequenc
             "retreat": "The arm moves up and away from the bin after placing the box",
         }[key]
     if cond == "none":
-        return f"{base} in frame {i}."
+        clip = f" of clip {zlib.crc32(eid.encode())}" if eid else ""  # unique per episode, no lexicon words
+        return f"{base} in frame {i}{clip}."
     x, y, z = ee[:3]
     return f"{base}; the hand is at x {x:.3f}, y {y:.3f}, z {z:.3f} ({cond}, frame {i})."
 
@@ -261,7 +263,7 @@ def write_synthetic_run(
                 FrameCaption(
                     f.index,
                     f.step,
-                    "" if f.index in gone else _frame_caption(ep.task, f.phase, f.direction, cond, f.ee, f.index),
+                    "" if f.index in gone else _frame_caption(ep.task, f.phase, f.direction, cond, f.ee, f.index, eid),
                     "missing" if f.index in gone else "ok",
                 )
                 for f in ep.frames
