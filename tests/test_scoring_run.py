@@ -120,7 +120,7 @@ def test_audit_shows_why(tables):
 def test_meta_names_encoder_and_lexicons(tables):
     meta = tables.meta
     assert meta["encoder"]["name"] == "fake-encoder" and meta["encoder"]["revision"] == "test-1"
-    assert meta["encoder"]["dim"] == 16 and meta["encoder"]["path"] is None
+    assert meta["encoder"]["dim"] == 16 and "path" not in meta["encoder"] and "threads" not in meta["encoder"]
     assert set(meta["lexicons"]) == {"door", "pick_place"}
 
 

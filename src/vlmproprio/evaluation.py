@@ -426,8 +426,9 @@ def score_run(
         "conditions": conds,
         "episodes": sorted(ids, key=lambda e: episode_order[e]),
         "n_transcripts": len(transcripts),
-        "encoder": spec.to_dict()
-        | {"path": None, "dim": int(next(iter(vectors.values())).shape[0]) if vectors else None},
+        # path and threads are left out: neither changes a vector, and a path differs between machines
+        "encoder": {k: v for k, v in spec.to_dict().items() if k not in ("path", "threads")}
+        | {"dim": int(next(iter(vectors.values())).shape[0]) if vectors else None},
         "lexicons": {task: {"version": lx.version, "sha256": lx.sha256} for task, lx in sorted(lexicons.items())},
         "segmentation": {
             "default_threshold": threshold,
