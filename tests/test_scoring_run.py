@@ -255,3 +255,25 @@ def test_aggregate_snapshot(tables, data_regression):
     """The whole-run means of the template run, frozen: any change to lexicons or metrics shows up here."""
     rows = [a for a in tables.aggregate if a["task"] == "all"]
     data_regression.check({"aggregate_all_tasks": rows})
+
+
+@pytest.mark.slow
+def test_real_encoder_cold_then_warm_in_another_process_is_bit_identical(tmp_path):
+    pytest.importorskip("sentence_transformers")  # the [embed] extra
+    from vlmproprio.embeddings import encoder_spec
+
+    run, fx = tmp_path / "run", tmp_path / "fx"
+    write_synthetic_run(run, fx, n_door=1, n_per_bin=1, n_frames=9, conditions=("none", "both"))
+    cold = score_run(run, encoder=encoder_spec())
+    assert cold.timing["embeddings"]["computed"] == cold.timing["embeddings"]["requested"] > 0
+    first = _score_files(run)
+    assert _run_scoring_subprocess(run, fake=False) == {"heavy": [], "computed": 0}
+    assert _score_files(run) == first
+    meta = json.loads(first["meta.json"])
+    assert meta["encoder"]["name"] == "sentence-transformers/all-MiniLM-L6-v2" and meta["encoder"]["dim"] == 384
+    # real sentence similarities: a caption is most like its own phase's neighbours
+    tr = cold.traces["synthetic/door_00__both"]
+    assert all(x is not None and -1.0 <= x <= 1.0 for x in tr["trace"])
+    across = [x for j, x in enumerate(tr["trace"]) if j in tr["true_boundaries"]]
+    within = [x for j, x in enumerate(tr["trace"]) if j not in tr["true_boundaries"]]
+    assert sum(within) / len(within) > sum(across) / len(across)

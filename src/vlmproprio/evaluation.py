@@ -5,7 +5,7 @@ Reads ``RUN_DIR/run.json`` (for the fixture root) and every transcript under
 
 * ``rows.json`` / ``rows.csv``: one row per (model, episode, condition) with every metric;
 * ``aggregate.json`` / ``aggregate.csv``: means per (model, task, condition), task "all" included,
-  with the best threshold of the sweep (by mean boundary F1 at +-1 frame);
+  with the best threshold of the sweep (highest mean boundary F1 at +-1 frame; ties: the lowest threshold);
 * ``sweep.json`` / ``sweep.csv``: per (model, episode, condition, threshold 0.00..1.00): number of
   segmentation points, boundary P/R/F1 at tolerance 0/1/2 frames, edit score;
   ``sweep_aggregate.json`` / ``.csv``: their means per (model, task, condition, threshold);
@@ -237,9 +237,6 @@ def _sort_rows(rows: list[dict], episode_order: dict[str, int], conds: list[str]
             episode_order.get(r.get("episode_id", ""), -1),
             conds.index(r.get("condition", "")) if r.get("condition") in conds else len(conds),
             r.get("threshold", 0.0),
-            r.get("metric", ""),
-            r.get("a", ""),
-            r.get("b", ""),
         )
 
     return sorted(rows, key=key)
@@ -417,7 +414,8 @@ def score_run(
     aggregate = _sort_rows(aggregate, episode_order, conds)
     sweep_aggregate = _sort_rows(sweep_aggregate, episode_order, conds)
     comps = list(comparisons) if comparisons is not None else default_comparisons(conds)
-    paired = _sort_rows(paired_table(rows, comps, n_boot=n_boot, n_perm=n_perm, seed=seed), episode_order, conds)
+    # already in a meaningful order: model, task, comparison (as listed), metric (as listed)
+    paired = paired_table(rows, comps, n_boot=n_boot, n_perm=n_perm, seed=seed)
     t_stats = time.perf_counter()
 
     meta = {
