@@ -148,6 +148,18 @@ CASES = [
         id="bin-negated-place",
     ),
     pytest.param(
+        "Grab the cereal box and move it to the upper-left corner of the bin.",
+        BIN3,
+        {"object": (1, 1, 0), "action": (1, 1, 0), "trajectory": (1, 1, 0)},
+        id="bin-move-it-upper-left",
+    ),
+    pytest.param(
+        "Lower the box into the bin on the left.",
+        BIN3,
+        {"object": (1, 1, 0), "action": (1, 0, 0), "trajectory": (1, 0, 0)},
+        id="bin-lower-is-a-verb-not-a-row",
+    ),
+    pytest.param(
         "",
         BIN3,
         {"object": (0, 0, 0), "action": (0, 0, 0), "trajectory": (0, 0, 0)},
