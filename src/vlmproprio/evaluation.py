@@ -156,14 +156,15 @@ def _caption_columns(prefix: str, s: CaptionScore) -> dict:
 
 
 def _scene_columns(scores: list[CaptionScore]) -> dict:
-    d = {}
+    """Fractions of the scene captions that mention / get right each item (None without scene captions)."""
+    d: dict = {}
     n = len(scores)
     for item in ITEMS:
         for what in ("mentioned", "correct", "wrong"):
             k = sum(1 for s in scores if getattr(s.item(item), what))
-            d[f"scene_{item}_{what}"] = k / n if n else 0.0
-    d["scene_all_correct"] = sum(1 for s in scores if s.all_correct) / n if n else 0.0
-    d["scene_words"] = math.fsum(s.words for s in scores) / n if n else 0.0
+            d[f"scene_{item}_{what}"] = k / n if n else None
+    d["scene_all_correct"] = sum(1 for s in scores if s.all_correct) / n if n else None
+    d["scene_words"] = math.fsum(s.words for s in scores) / n if n else None
     return d
 
 
