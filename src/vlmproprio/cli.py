@@ -138,11 +138,32 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def _score_and_report(run_dir: Path, fixtures: Path | None) -> int:
     from vlmproprio.report import write_report
-    from vlmproprio.scoring import score_run
+    from vlmproprio.evaluation import score_run
 
     score_run(run_dir, fixtures=fixtures)
     index = write_report(run_dir)
     print(f"report: {index}")
+    return 0
+
+
+def cmd_score(args: argparse.Namespace) -> int:
+    from vlmproprio.embeddings import encoder_spec
+    from vlmproprio.evaluation import score_run
+
+    spec = encoder_spec(args.encoder, batch_size=args.encoder_batch_size, threads=args.encoder_threads)
+    tables = score_run(
+        args.run_dir,
+        fixtures=args.fixtures,
+        encoder=spec,
+        embedding_cache=args.embedding_cache,
+        threshold=args.threshold,
+    )
+    t = tables.timing
+    e = t["embeddings"]
+    print(
+        f"scored {len(tables.rows)} transcripts into {args.run_dir / 'scores'} in {t['total_s']:.1f} s "
+        f"(embeddings: {e['cached']} cached, {e['computed']} computed)"
+    )
     return 0
 
 
@@ -276,6 +297,26 @@ def build_parser() -> argparse.ArgumentParser:
         "--cache", type=Path, help="response cache folder (default: $VLMPROPRIO_CACHE or ./.vlmproprio-cache/responses)"
     )
     pi.set_defaults(func=cmd_cassette)
+
+    p = sub.add_parser(
+        "score",
+        help="score a run: caption rubric, segmentation sweep, paired statistics -> RUN_DIR/scores/",
+        description="Score every transcript of a run against the fixtures' ground truth and write tables "
+        "(rows, aggregate, threshold sweep, paired statistics, audit) to RUN_DIR/scores/. Frame-caption "
+        "embeddings are cached in RUN_DIR/embeddings, so re-scoring needs no torch.",
+    )
+    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory written by `vlmproprio run`")
+    p.add_argument("--fixtures", type=Path, default=None, help="fixture folder (default: the one in RUN_DIR/run.json)")
+    p.add_argument("--threshold", type=float, default=0.65, help="similarity threshold for boundaries (default 0.65)")
+    p.add_argument(
+        "--encoder", default=None, metavar="PATH", help="local sentence-transformers folder (default: all-MiniLM-L6-v2)"
+    )
+    p.add_argument("--encoder-batch-size", type=int, default=8, help="fixed encoder batch size (part of the cache key)")
+    p.add_argument("--encoder-threads", type=int, default=1, help="torch threads while encoding (default 1)")
+    p.add_argument(
+        "--embedding-cache", type=Path, default=None, help="embedding cache folder (default RUN_DIR/embeddings)"
+    )
+    p.set_defaults(func=cmd_score)
 
     return parser
 

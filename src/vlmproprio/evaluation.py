@@ -1,0 +1,545 @@
+"""Score a whole run: caption rubric, segmentation sweep and paired statistics into RUN_DIR/scores/.
+
+Reads ``RUN_DIR/run.json`` (for the fixture root) and every transcript under
+``RUN_DIR/transcripts/``, loads the ground truth of each episode, and writes:
+
+* ``rows.json`` / ``rows.csv``: one row per (model, episode, condition) with every metric;
+* ``aggregate.json`` / ``aggregate.csv``: means per (model, task, condition), task "all" included,
+  with the best threshold of the sweep (highest mean boundary F1 at +-1 frame; ties: the lowest threshold);
+* ``sweep.json`` / ``sweep.csv``: per (model, episode, condition, threshold 0.00..1.00): number of
+  segmentation points, boundary P/R/F1 at tolerance 0/1/2 frames, edit score;
+  ``sweep_aggregate.json`` / ``.csv``: their means per (model, task, condition, threshold);
+* ``paired.json`` / ``paired.csv``: condition differences paired by episode (bootstrap CI, sign-flip p);
+* ``audit.json``: per caption, every matched span with its verdict, and what was expected;
+* ``traces.json``: every similarity trace with its predicted and true boundaries;
+* ``meta.json``: encoder name, revision and key, lexicon versions and hashes, settings;
+* ``timing.json``: wall times and cache counts -- the only file that differs between repeated runs.
+
+Given the same transcripts, fixtures and cached embeddings, every file but
+timing.json is byte-identical across runs, processes and machines.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from vlmproprio.episodes import Episode, atomic_write_text, load_episodes
+from vlmproprio.errors import VlmproprioError
+from vlmproprio.scoring import ITEMS, CaptionScore, expectation_for, load_lexicon, score_text
+from vlmproprio.segmentation import (
+    DEFAULT_THRESHOLD,
+    THRESHOLDS,
+    TOLERANCES,
+    boundaries_at,
+    caption_present,
+    cosine_trace,
+    evaluate_segmentation,
+    sweep,
+)
+from vlmproprio.stats import DEFAULT_N_BOOT, DEFAULT_N_PERM, DEFAULT_SEED, paired_difference
+from vlmproprio.transcripts import Transcript, read_transcripts
+
+SCORES_VERSION = 1
+BASELINE = "none"
+STATE_CONDITIONS = ("none", "ee", "joint", "both")
+CONTROL_CONDITIONS = ("both_shuffled", "both_noisy", "state_only", "primitives")
+PAIRED_METRICS = (
+    "final_object_correct",
+    "final_action_correct",
+    "final_trajectory_mentioned",
+    "final_trajectory_correct",
+    "final_all_correct",
+    "final_words",
+    "final_hits_per_word",
+    "seg_points",
+    "seg_f1_tol1",
+    "seg_edit",
+)
+MISSING_POLICY = (
+    "A frame caption with status 'missing', an empty text, or no entry in the transcript is a gap: the trace "
+    "keeps its place and every pair touching it is NaN, which never makes a boundary. A missing final or scene "
+    "caption scores as an empty text (nothing mentioned, zero words). 'recovered' captions are used as they are."
+)
+ID_COLUMNS = ("model", "episode_id", "task", "condition")
+
+
+class ScoreRunError(VlmproprioError):
+    """A run directory that cannot be scored; the message names the file and what to do."""
+
+
+@dataclass
+class ScoreTables:
+    rows: list[dict]
+    aggregate: list[dict]
+    sweep: list[dict]
+    sweep_aggregate: list[dict]
+    paired: list[dict]
+    audit: dict
+    traces: dict
+    meta: dict
+    timing: dict = field(default_factory=dict)
+    judge: dict | None = None  # only when a judge backend was given
+
+
+# ---------------------------------------------------------------------------------------------- inputs
+
+
+def _read_run_manifest(run_dir: Path) -> dict:
+    path = run_dir / "run.json"
+    if not path.is_file():
+        return {}
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise ScoreRunError(f"{path}: cannot read run manifest ({exc})") from exc
+    if not isinstance(data, dict):
+        raise ScoreRunError(f"{path}: run manifest must be a JSON object")
+    return data
+
+
+def resolve_fixtures(run_dir: Path, manifest: dict, fixtures: str | Path | None) -> Path:
+    if fixtures is not None:
+        root = Path(fixtures)
+    elif manifest.get("fixtures"):
+        root = Path(manifest["fixtures"])
+        if not root.is_absolute() and not root.is_dir() and (run_dir / root).is_dir():
+            root = run_dir / root
+    else:
+        raise ScoreRunError(f"{run_dir / 'run.json'}: no 'fixtures' entry; pass the fixture folder (--fixtures)")
+    if not root.is_dir():
+        raise ScoreRunError(f"fixture folder {root} not found (from {run_dir / 'run.json'}); pass --fixtures")
+    return root
+
+
+def condition_order(conditions: Sequence[str]) -> list[str]:
+    known = [*STATE_CONDITIONS, *CONTROL_CONDITIONS]
+    return sorted(set(conditions), key=lambda c: (known.index(c) if c in known else len(known), c))
+
+
+def frame_texts(t: Transcript, n_frames: int, where: str) -> tuple[list[str], list[str]]:
+    """Texts and statuses aligned with frame indices 0..n-1; absent frames are 'missing'."""
+    texts = [""] * n_frames
+    statuses = ["missing"] * n_frames
+    for f in t.frames:
+        if not 0 <= f.frame_index < n_frames:
+            raise ScoreRunError(f"{where}: frame_index {f.frame_index} outside the episode's {n_frames} frames")
+        texts[f.frame_index] = f.text or ""
+        statuses[f.frame_index] = f.status if caption_present(f.text, f.status) else "missing"
+    return texts, statuses
+
+
+# ---------------------------------------------------------------------------------------------- per transcript
+
+
+def _flag(b: bool) -> int:
+    return 1 if b else 0
+
+
+def _caption_columns(prefix: str, s: CaptionScore) -> dict:
+    d = {}
+    for item in ITEMS:
+        it = s.item(item)
+        d[f"{prefix}_{item}_mentioned"] = _flag(it.mentioned)
+        d[f"{prefix}_{item}_correct"] = _flag(it.correct)
+        d[f"{prefix}_{item}_wrong"] = _flag(it.wrong)
+    d[f"{prefix}_all_correct"] = _flag(s.all_correct)
+    return d
+
+
+def _scene_columns(scores: list[CaptionScore]) -> dict:
+    """Fractions of the scene captions that mention / get right each item (None without scene captions)."""
+    d: dict = {}
+    n = len(scores)
+    for item in ITEMS:
+        for what in ("mentioned", "correct", "wrong"):
+            k = sum(1 for s in scores if getattr(s.item(item), what))
+            d[f"scene_{item}_{what}"] = k / n if n else None
+    d["scene_all_correct"] = sum(1 for s in scores if s.all_correct) / n if n else None
+    d["scene_words"] = math.fsum(s.words for s in scores) / n if n else None
+    return d
+
+
+def _caption_audit(text: str, status: str, s: CaptionScore) -> dict:
+    return {
+        "text": text,
+        "status": status,
+        "words": s.words,
+        "hits": s.hits,
+        "items": {item: vars(s.item(item)).copy() for item in ITEMS} | {"all_correct": s.all_correct},
+        "matches": [h.to_dict() for h in s.matches],
+    }
+
+
+def _finite_or_none(x: float) -> float | None:
+    return None if x is None or (isinstance(x, float) and not math.isfinite(x)) else x
+
+
+def _trace_stats(trace: np.ndarray) -> dict:
+    fin = [float(x) for x in trace.tolist() if math.isfinite(x)]
+    return {
+        "sim_mean": _finite_or_none(math.fsum(fin) / len(fin)) if fin else None,
+        "sim_min": min(fin) if fin else None,
+    }
+
+
+# ---------------------------------------------------------------------------------------------- tables
+
+
+def _mean(values: list) -> float | None:
+    vals = [float(v) for v in values if v is not None]
+    return math.fsum(vals) / len(vals) if vals else None
+
+
+def _numeric_columns(rows: list[dict], skip: Sequence[str]) -> list[str]:
+    cols: list[str] = []
+    for r in rows:
+        for k, v in r.items():
+            if k in skip or k in cols:
+                continue
+            if (isinstance(v, (int, float)) and not isinstance(v, bool)) or v is None:
+                cols.append(k)
+    return [c for c in cols if any(isinstance(r.get(c), (int, float)) for r in rows)]
+
+
+def _group_means(rows: list[dict], keys: Sequence[str], skip: Sequence[str], add_all_task: bool) -> list[dict]:
+    cols = _numeric_columns(rows, skip)
+    groups: dict[tuple, list[dict]] = {}
+    for r in rows:
+        groups.setdefault(tuple(r[k] for k in keys), []).append(r)
+        if add_all_task:
+            groups.setdefault(tuple("all" if k == "task" else r[k] for k in keys), []).append(r)
+    out = []
+    for key, members in groups.items():
+        d = dict(zip(keys, key, strict=True))
+        d["n_episodes"] = len(members)
+        for c in cols:
+            d[c] = _mean([m.get(c) for m in members])
+        out.append(d)
+    return out
+
+
+def _sort_rows(rows: list[dict], episode_order: dict[str, int], conds: list[str]) -> list[dict]:
+    tasks = {"door": 0, "pick_place": 1, "all": 9}
+
+    def key(r: dict):
+        return (
+            r["model"],
+            tasks.get(r.get("task"), 5),
+            r.get("task", ""),
+            episode_order.get(r.get("episode_id", ""), -1),
+            conds.index(r.get("condition", "")) if r.get("condition") in conds else len(conds),
+            r.get("threshold", 0.0),
+        )
+
+    return sorted(rows, key=key)
+
+
+def default_comparisons(conditions: Sequence[str]) -> list[tuple[str, str]]:
+    """Every condition against the no-state baseline, and the full-state condition against each control."""
+    conds = condition_order(conditions)
+    out = [(c, BASELINE) for c in conds if c != BASELINE and BASELINE in conds]
+    if "both" in conds:
+        out += [("both", c) for c in conds if c not in STATE_CONDITIONS]
+    return out
+
+
+def paired_table(
+    rows: list[dict],
+    comparisons: Sequence[tuple[str, str]],
+    metrics: Sequence[str] = PAIRED_METRICS,
+    *,
+    n_boot: int = DEFAULT_N_BOOT,
+    n_perm: int = DEFAULT_N_PERM,
+    seed: int = DEFAULT_SEED,
+) -> list[dict]:
+    index = {(r["model"], r["task"], r["condition"], r["episode_id"]): r for r in rows}
+    out = []
+    models = sorted({r["model"] for r in rows})
+    tasks = sorted({r["task"] for r in rows})
+    for model in models:
+        for task in [*tasks, "all"]:
+            for a, b in comparisons:
+                ta = [task] if task != "all" else tasks
+                pairs = [
+                    (index[(model, t, a, e)], index[(model, t, b, e)])
+                    for (m, t, c, e) in index
+                    if m == model and c == a and t in ta and (model, t, b, e) in index
+                ]
+                if not pairs:
+                    continue
+                pairs.sort(key=lambda p: p[0]["episode_id"])
+                for metric in metrics:
+                    va = [p[0].get(metric) for p in pairs]
+                    vb = [p[1].get(metric) for p in pairs]
+                    keep = [(x, y) for x, y in zip(va, vb, strict=True) if x is not None and y is not None]
+                    res = paired_difference(
+                        [x for x, _ in keep], [y for _, y in keep], n_boot=n_boot, n_perm=n_perm, seed=seed
+                    )
+                    out.append({"model": model, "task": task, "metric": metric, "a": a, "b": b, **res.to_dict()})
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- main entry
+
+
+def score_run(
+    run_dir: str | Path,
+    fixtures: str | Path | None = None,
+    encoder=None,
+    *,
+    embedding_cache: str | Path | None = None,
+    threshold: float = DEFAULT_THRESHOLD,
+    thresholds: Sequence[float] = THRESHOLDS,
+    comparisons: Sequence[tuple[str, str]] | None = None,
+    n_boot: int = DEFAULT_N_BOOT,
+    n_perm: int = DEFAULT_N_PERM,
+    seed: int = DEFAULT_SEED,
+    verify: bool = True,
+    write: bool = True,
+    judge=None,
+) -> ScoreTables:
+    """Score every transcript of a run and (by default) write RUN_DIR/scores/.
+
+    ``encoder`` is an ``embeddings.EncoderSpec`` (default: the packaged all-MiniLM-L6-v2); embeddings are cached
+    in ``embedding_cache`` (default RUN_DIR/embeddings), so re-scoring a run needs no torch. ``judge`` (off by
+    default) is any vlmproprio Backend that also grades the final captions; its agreement with the rubric
+    goes to scores/judge.json."""
+    from vlmproprio.embeddings import CachedEmbedder, EmbeddingStore, encoder_spec
+
+    t_start = time.perf_counter()
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise ScoreRunError(f"{run_dir}: run directory not found")
+    manifest = _read_run_manifest(run_dir)
+    transcripts = read_transcripts(run_dir)
+    if not transcripts:
+        raise ScoreRunError(f"{run_dir / 'transcripts'}: no transcripts (run `vlmproprio run` first)")
+    root = resolve_fixtures(run_dir, manifest, fixtures)
+    ids = sorted({t.episode_id for t in transcripts})
+    episodes: dict[str, Episode] = {e.episode_id: e for e in load_episodes(root, ids, verify=verify)}
+    run_order = [e for e in manifest.get("episodes", []) if isinstance(e, str)]
+    episode_order = {e: i for i, e in enumerate([*run_order, *[i for i in ids if i not in run_order]])}
+    conds = condition_order([t.condition for t in transcripts])
+    t_loaded = time.perf_counter()
+
+    spec = encoder if encoder is not None else encoder_spec()
+    cache_dir = Path(embedding_cache) if embedding_cache is not None else run_dir / "embeddings"
+    aligned = {}
+    for t in transcripts:
+        where = f"{run_dir}/transcripts/{t.model}/{t.episode_id}__{t.condition}.json"
+        ep = episodes[t.episode_id]
+        if t.task != ep.task:
+            raise ScoreRunError(f"{where}: task {t.task!r} but episode {ep.episode_id} is {ep.task!r}")
+        aligned[(t.model, t.episode_id, t.condition)] = frame_texts(t, len(ep.frames), where)
+    all_texts = sorted({x for texts, st in aligned.values() for x, s in zip(texts, st, strict=True) if s != "missing"})
+    with EmbeddingStore(cache_dir) as store:
+        embedder = CachedEmbedder(spec, store)
+        vectors = embedder.embed(all_texts)
+    t_embedded = time.perf_counter()
+
+    rows, sweep_rows, audit, traces = [], [], {}, {}
+    lexicons = {}
+    finals: list[tuple[str, CaptionScore, str, Episode, str]] = []
+    for t in transcripts:
+        ep = episodes[t.episode_id]
+        lex = lexicons.setdefault(ep.task, load_lexicon(ep.task))
+        exp = expectation_for(ep, lex)
+        key = f"{t.model}/{t.episode_id}__{t.condition}"
+        final_text = t.final if t.final_status != "missing" else ""
+        final = score_text(final_text, exp, lex)
+        finals.append((key, final, final_text, ep, t.condition))
+        scene_texts = [(s.text if s.status != "missing" else "") for s in t.scenes]
+        scenes = [score_text(x, exp, lex) for x in scene_texts]
+        texts, statuses = aligned[(t.model, t.episode_id, t.condition)]
+        trace = cosine_trace([vectors[x] if s != "missing" else None for x, s in zip(texts, statuses, strict=True)])
+        labels = ep.frame_phases
+        at = evaluate_segmentation(trace, labels, threshold)
+        row = {
+            "model": t.model,
+            "episode_id": t.episode_id,
+            "task": ep.task,
+            "condition": t.condition,
+            "n_frames": len(ep.frames),
+            "frames_missing": statuses.count("missing"),
+            "frames_recovered": statuses.count("recovered"),
+            "n_scenes": len(t.scenes),
+            "scenes_missing": sum(1 for s in t.scenes if s.status == "missing"),
+            "final_missing": _flag(t.final_status == "missing"),
+            "final_words": final.words,
+            "final_hits": final.hits,
+            "final_hits_per_word": final.hits_per_word,
+            **_caption_columns("final", final),
+            **_scene_columns(scenes),
+            "seg_threshold": threshold,
+            "seg_gt_boundaries": len(ep.boundaries()),
+            **{f"seg_{k}": v for k, v in at.flat().items() if k != "threshold"},
+            **_trace_stats(trace),
+        }
+        rows.append(row)
+        for sp in sweep(trace, labels, thresholds):
+            sweep_rows.append(
+                {"model": t.model, "episode_id": t.episode_id, "task": ep.task, "condition": t.condition} | sp.flat()
+            )
+        audit[key] = {
+            "expectation": exp.to_dict(),
+            "final": _caption_audit(t.final, t.final_status, final),
+            "scenes": [
+                {"group": s.group, "frame_indices": list(s.frame_indices), **_caption_audit(s.text, s.status, sc)}
+                for s, sc in zip(t.scenes, scenes, strict=True)
+            ],
+        }
+        traces[key] = {
+            "trace": [_finite_or_none(float(x)) for x in trace.tolist()],
+            "frame_status": statuses,
+            "predicted_boundaries": boundaries_at(trace, threshold),
+            "true_boundaries": ep.boundaries(),
+            "true_phases": labels,
+        }
+    t_scored = time.perf_counter()
+
+    rows = _sort_rows(rows, episode_order, conds)
+    sweep_rows = _sort_rows(sweep_rows, episode_order, conds)
+    skip = (*ID_COLUMNS, "seg_threshold", "threshold")
+    aggregate = _group_means(rows, ("model", "task", "condition"), skip, add_all_task=True)
+    sweep_aggregate = _group_means(sweep_rows, ("model", "task", "condition", "threshold"), skip, add_all_task=True)
+    _add_best_threshold(aggregate, sweep_aggregate)
+    aggregate = _sort_rows(aggregate, episode_order, conds)
+    sweep_aggregate = _sort_rows(sweep_aggregate, episode_order, conds)
+    comps = list(comparisons) if comparisons is not None else default_comparisons(conds)
+    # already in a meaningful order: model, task, comparison (as listed), metric (as listed)
+    paired = paired_table(rows, comps, n_boot=n_boot, n_perm=n_perm, seed=seed)
+    t_stats = time.perf_counter()
+
+    meta = {
+        "scores_version": SCORES_VERSION,
+        "models": sorted({t.model for t in transcripts}),
+        "conditions": conds,
+        "episodes": sorted(ids, key=lambda e: episode_order[e]),
+        "n_transcripts": len(transcripts),
+        # path and threads are left out: neither changes a vector, and a path differs between machines
+        "encoder": {k: v for k, v in spec.to_dict().items() if k not in ("path", "threads")}
+        | {"dim": int(next(iter(vectors.values())).shape[0]) if vectors else None},
+        "lexicons": {task: {"version": lx.version, "sha256": lx.sha256} for task, lx in sorted(lexicons.items())},
+        "segmentation": {
+            "default_threshold": threshold,
+            "thresholds": list(thresholds),
+            "tolerances": list(TOLERANCES),
+            "boundary": "segmentation point j where cos(caption j, caption j+1) < threshold",
+            "missing_frames": MISSING_POLICY,
+        },
+        "stats": {
+            "comparisons": [list(c) for c in comps],
+            "metrics": list(PAIRED_METRICS),
+            "n_boot": n_boot,
+            "n_perm": n_perm,
+            "seed": seed,
+            "ci": "percentile bootstrap 95%",
+            "p_value": "two-sided sign-flip permutation (exact up to 16 pairs)",
+        },
+    }
+    timing = {
+        "load_s": t_loaded - t_start,
+        "embed_s": t_embedded - t_loaded,
+        "score_segment_s": t_scored - t_embedded,
+        "stats_s": t_stats - t_scored,
+        "embeddings": embedder.stats.to_dict(),
+    }
+    judged = None
+    if judge is not None:
+        judged = judge_table(judge, finals)
+        timing["judge_s"] = time.perf_counter() - t_stats
+    tables = ScoreTables(rows, aggregate, sweep_rows, sweep_aggregate, paired, audit, traces, meta, timing, judged)
+    if write:
+        write_score_tables(run_dir, tables)
+    tables.timing["total_s"] = time.perf_counter() - t_start
+    return tables
+
+
+def judge_table(backend, finals: list[tuple[str, CaptionScore, str, Episode, str]]) -> dict:
+    """Grade the final captions with a judge backend and compare with the rubric."""
+    from vlmproprio.scoring import judge_agreement, judge_captions
+
+    verdicts = judge_captions(backend, [(text, ep, cond) for _, _, text, ep, cond in finals])
+    return {
+        "backend": dict(backend.identity()),
+        "agreement": judge_agreement([s for _, s, _, _, _ in finals], verdicts),
+        "verdicts": {key: v.to_dict() for (key, _, _, _, _), v in zip(finals, verdicts, strict=True)},
+    }
+
+
+def _add_best_threshold(aggregate: list[dict], sweep_aggregate: list[dict]) -> None:
+    best: dict[tuple, dict] = {}
+    for r in sweep_aggregate:
+        k = (r["model"], r["task"], r["condition"])
+        f1 = r.get("f1_tol1")
+        if f1 is not None and (k not in best or f1 > best[k]["f1_tol1"]):
+            best[k] = r
+    for a in aggregate:
+        b = best.get((a["model"], a["task"], a["condition"]))
+        a["seg_best_threshold"] = b["threshold"] if b else None
+        a["seg_best_f1_tol1"] = b["f1_tol1"] if b else None
+
+
+# ---------------------------------------------------------------------------------------------- writing
+
+
+def _json_safe(obj):
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: _json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_safe(v) for v in obj]
+    return obj
+
+
+def dumps_json(obj) -> str:
+    return json.dumps(_json_safe(obj), indent=1, ensure_ascii=False, allow_nan=False) + "\n"
+
+
+def dumps_csv(rows: list[dict]) -> str:
+    cols: list[str] = []
+    for r in rows:
+        cols += [k for k in r if k not in cols]
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(cols)
+    for r in rows:
+        w.writerow(["" if r.get(c) is None else repr(r[c]) if isinstance(r[c], float) else r[c] for c in cols])
+    return buf.getvalue()
+
+
+def write_score_tables(run_dir: str | Path, tables: ScoreTables) -> list[Path]:
+    out = Path(run_dir) / "scores"
+    files = {
+        "rows.json": dumps_json(tables.rows),
+        "rows.csv": dumps_csv(tables.rows),
+        "aggregate.json": dumps_json(tables.aggregate),
+        "aggregate.csv": dumps_csv(tables.aggregate),
+        "sweep.json": dumps_json(tables.sweep),
+        "sweep.csv": dumps_csv(tables.sweep),
+        "sweep_aggregate.json": dumps_json(tables.sweep_aggregate),
+        "sweep_aggregate.csv": dumps_csv(tables.sweep_aggregate),
+        "paired.json": dumps_json(tables.paired),
+        "paired.csv": dumps_csv(tables.paired),
+        "audit.json": dumps_json(tables.audit),
+        "traces.json": dumps_json(tables.traces),
+        "meta.json": dumps_json(tables.meta),
+        "timing.json": dumps_json(tables.timing),
+    }
+    if tables.judge is not None:
+        files["judge.json"] = dumps_json(tables.judge)
+    paths = []
+    for name, text in files.items():
+        atomic_write_text(out / name, text)
+        paths.append(out / name)
+    return paths

@@ -1,0 +1,279 @@
+"""Scoring a whole run: the tables, missing captions, bit-identical replay, no torch when cached, CLI, judge."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+import pytest
+
+from scoring_helpers import fake_spec, prefill_embeddings, write_synthetic_run
+from vlmproprio.backends.base import Backend
+from vlmproprio.chat import Answer, AnswerMeta, ChatRequest
+from vlmproprio.embeddings import EmbeddingError
+from vlmproprio.evaluation import ScoreRunError, score_run
+from vlmproprio.segmentation import THRESHOLDS
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+TESTS = Path(__file__).resolve().parent
+CONDS = ("none", "ee", "both", "both_shuffled")
+MISSING = {("door_00", "both"): [3, 4], ("bin2_00", "none"): [0]}
+
+
+@pytest.fixture(scope="module")
+def small_run(tmp_path_factory):
+    base = tmp_path_factory.mktemp("run")
+    run, fx = base / "run", base / "fixtures"
+    ids = write_synthetic_run(run, fx, n_door=3, n_per_bin=1, n_frames=14, conditions=CONDS, missing=MISSING)
+    prefill_embeddings(run, fake_spec().key)
+    return run, ids
+
+
+@pytest.fixture(scope="module")
+def tables(small_run):
+    run, _ = small_run
+    return score_run(run, encoder=fake_spec())
+
+
+def _rows(tables, **match):
+    return [r for r in tables.rows if all(r[k] == v for k, v in match.items())]
+
+
+def test_one_row_per_transcript_with_every_metric(tables, small_run):
+    _, ids = small_run
+    assert len(tables.rows) == len(ids) * len(CONDS)
+    r = _rows(tables, episode_id="door_00", condition="both")[0]
+    for col in (
+        "final_words",
+        "final_hits_per_word",
+        "final_trajectory_correct",
+        "scene_action_mentioned",
+        "seg_points",
+        "seg_f1_tol0",
+        "seg_f1_tol1",
+        "seg_f1_tol2",
+        "seg_edit",
+        "seg_gt_boundaries",
+    ):
+        assert col in r, col
+    assert [c["condition"] for c in _rows(tables, episode_id="bin0_00")] == list(CONDS)
+
+
+def test_rubric_results_of_the_template_captions(tables):
+    for r in _rows(tables, condition="none"):
+        assert (r["final_object_correct"], r["final_action_correct"], r["final_trajectory_mentioned"]) == (1, 1, 0)
+    for r in _rows(tables, condition="both"):
+        assert r["final_all_correct"] == 1, r["episode_id"]
+        assert r["final_words"] > 10
+
+
+def test_missing_frames_stay_in_place(tables):
+    r = _rows(tables, episode_id="door_00", condition="both")[0]
+    assert r["frames_missing"] == 2 and r["n_frames"] == 14
+    tr = tables.traces["synthetic/door_00__both"]
+    assert len(tr["trace"]) == 13
+    assert tr["trace"][2] is None and tr["trace"][3] is None and tr["trace"][4] is None
+    assert tr["frame_status"][3] == "missing" and tr["trace"][5] is not None
+    assert not set(tr["predicted_boundaries"]) & {2, 3, 4}
+    assert _rows(tables, episode_id="bin2_00", condition="none")[0]["frames_missing"] == 1
+
+
+def test_template_captions_segment_at_the_true_boundaries(tables):
+    # frame captions repeat their phase's template, so the fake embeddings change exactly at phase changes
+    r = _rows(tables, episode_id="door_01", condition="none")[0]
+    assert r["seg_f1_tol0"] == 1.0 and r["seg_edit"] == 100.0
+
+
+def test_sweep_has_every_threshold_and_more_points_higher(tables):
+    rows = [s for s in tables.sweep if s["episode_id"] == "bin1_00" and s["condition"] == "ee"]
+    assert [s["threshold"] for s in rows] == list(THRESHOLDS)
+    points = [s["points"] for s in rows]
+    assert points == sorted(points) and points[-1] > points[0]
+    agg = [a for a in tables.sweep_aggregate if a["task"] == "all" and a["condition"] == "ee"]
+    assert len(agg) == len(THRESHOLDS) and agg[0]["n_episodes"] == 7
+
+
+def test_aggregate_and_paired_tables(tables):
+    door_none = next(a for a in tables.aggregate if (a["task"], a["condition"]) == ("door", "none"))
+    assert door_none["n_episodes"] == 3 and door_none["final_action_correct"] == 1.0
+    assert door_none["seg_best_threshold"] in THRESHOLDS
+    pairs = {(p["task"], p["metric"], p["a"], p["b"]): p for p in tables.paired}
+    p = pairs[("all", "final_trajectory_correct", "both", "none")]
+    assert p["n"] == 7 and p["mean_diff"] == 1.0 and p["p_value"] == 2 / 2**7
+    assert ("door", "final_words", "both", "both_shuffled") in pairs
+    assert ("door", "final_words", "both_shuffled", "none") in pairs
+
+
+def test_audit_shows_why(tables):
+    a = tables.audit["synthetic/bin3_00__both"]
+    assert a["expectation"]["target_row"] == "far" and a["expectation"]["target_side"] == "left"
+    m = {h["text"]: h for h in a["final"]["matches"]}
+    assert m["far"]["verdict"] == "correct" and a["final"]["items"]["trajectory"]["correct"]
+    assert len(a["scenes"]) == 3 and a["scenes"][0]["frame_indices"] == [0, 1, 2, 3, 4]
+
+
+def test_meta_names_encoder_and_lexicons(tables):
+    meta = tables.meta
+    assert meta["encoder"]["name"] == "fake-encoder" and meta["encoder"]["revision"] == "test-1"
+    assert meta["encoder"]["dim"] == 16 and "path" not in meta["encoder"] and "threads" not in meta["encoder"]
+    assert set(meta["lexicons"]) == {"door", "pick_place"}
+
+
+def test_written_files_are_valid_json_and_csv(tables, small_run):
+    run, _ = small_run
+    out = run / "scores"
+    for name in ("rows", "aggregate", "sweep", "sweep_aggregate", "paired"):
+        data = json.loads((out / f"{name}.json").read_text())
+        lines = (out / f"{name}.csv").read_text().splitlines()
+        assert len(lines) == len(data) + 1
+    assert json.loads((out / "meta.json").read_text())["scores_version"] == 1
+
+
+def _score_files(run: Path) -> dict[str, bytes]:
+    return {p.name: p.read_bytes() for p in sorted((run / "scores").iterdir()) if p.name != "timing.json"}
+
+
+SUBPROCESS = """
+import sys, json
+sys.path.insert(0, {tests!r})
+from vlmproprio.evaluation import score_run
+from vlmproprio.embeddings import encoder_spec
+from scoring_helpers import fake_spec
+spec = fake_spec() if {fake!r} else encoder_spec()
+t = score_run({run!r}, encoder=spec)
+heavy = sorted(m for m in ("torch", "transformers", "sentence_transformers") if m in sys.modules)
+print(json.dumps({{"heavy": heavy, "computed": t.timing["embeddings"]["computed"]}}))
+"""
+
+
+def _run_scoring_subprocess(run: Path, fake: bool) -> dict:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(SRC), os.environ.get("PYTHONPATH", "")])}
+    code = SUBPROCESS.format(tests=str(TESTS), run=str(run), fake=fake)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_scores_are_bit_identical_across_runs_and_processes(tables, small_run):
+    run, _ = small_run
+    first = _score_files(run)
+    score_run(run, encoder=fake_spec())
+    assert _score_files(run) == first
+    assert _run_scoring_subprocess(run, fake=True) == {"heavy": [], "computed": 0}
+    assert _score_files(run) == first
+
+
+def test_a_cached_run_imports_no_torch(tmp_path):
+    """The default encoder's spec (name, revision) and the whole scoring path, with torch never imported."""
+    run, fx = tmp_path / "run", tmp_path / "fx"
+    write_synthetic_run(run, fx, n_door=1, n_per_bin=1, n_frames=10, conditions=("none", "both"))
+    code = "from vlmproprio.embeddings import encoder_spec; print(encoder_spec().key)"
+    env = {**os.environ, "PYTHONPATH": str(SRC)}
+    key = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    prefill_embeddings(run, key.stdout.strip())
+    assert _run_scoring_subprocess(run, fake=False) == {"heavy": [], "computed": 0}
+
+
+def test_uncached_text_with_unloadable_encoder_is_a_clean_error(tmp_path):
+    run, fx = tmp_path / "run", tmp_path / "fx"
+    write_synthetic_run(run, fx, n_door=1, n_per_bin=0, n_frames=8, conditions=("none",))
+    with pytest.raises(EmbeddingError, match="encoder folder not found"):
+        score_run(run, encoder=fake_spec())
+
+
+def test_bad_run_dirs_are_clean_errors(tmp_path):
+    with pytest.raises(ScoreRunError, match="not found"):
+        score_run(tmp_path / "nope", encoder=fake_spec())
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ScoreRunError, match="no transcripts"):
+        score_run(tmp_path / "empty", encoder=fake_spec())
+
+
+def test_cli_score(small_run, capsys):
+    from vlmproprio.cli import main
+
+    run, _ = small_run
+    code = "from vlmproprio.embeddings import encoder_spec; print(encoder_spec().key)"
+    env = {**os.environ, "PYTHONPATH": str(SRC)}
+    key = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    cache = run.parent / "cli-cache"
+    prefill_embeddings(run, key.stdout.strip(), cache_dir=cache)
+    assert main(["score", str(run), "--embedding-cache", str(cache)]) == 0
+    assert "scored 28 transcripts" in capsys.readouterr().out
+    assert main(["score", str(run.parent / "missing")]) == 2
+    assert "run directory not found" in capsys.readouterr().err
+
+
+class RuleJudge(Backend):
+    """A fake judge: says everything is mentioned, and correct only when the caption says 'toward' or 'far'."""
+
+    max_batch_size = 4
+
+    def __init__(self):
+        self.seen: list[ChatRequest] = []
+
+    def identity(self) -> dict[str, str]:
+        return {"backend": "fake-judge", "model_id": "rule"}
+
+    def generate(self, requests: Sequence[ChatRequest]) -> list[Answer]:
+        assert len(requests) <= self.max_batch_size
+        self.seen.extend(requests)
+        out = []
+        for r in requests:
+            caption = r.messages[-1].text.split('"""')[1]
+            ok = "toward" in caption or "far" in caption
+            items = {k: {"mentioned": True, "correct": ok} for k in ("object", "action", "trajectory")}
+            text = "Sure! " + json.dumps(items) if "bin0" not in r.tag.episode_id else "I cannot tell."
+            out.append(Answer(text, AnswerMeta(backend="fake-judge", model_id="rule")))
+        return out
+
+
+def test_judge_scorer_reports_agreement_with_the_rubric(small_run):
+    run, ids = small_run
+    judge = RuleJudge()
+    t = score_run(run, encoder=fake_spec(), judge=judge, write=False)
+    assert len(judge.seen) == len(ids) * len(CONDS)
+    assert "Ground truth" in judge.seen[0].messages[-1].text and judge.seen[0].tag.stage == "judge"
+    agr = t.judge["agreement"]
+    assert agr["n"] == 28 and agr["unparsed"] == len(CONDS)  # bin0_00 answers are not JSON
+    # the rubric says object mentioned everywhere, so the judge agrees on that item every time
+    assert agr["items"]["object_mentioned"]["agreement"] == 1.0
+    # it marks every 'none' caption's trajectory mentioned, the rubric does not
+    tm = agr["items"]["trajectory_mentioned"]
+    assert 0.0 < tm["agreement"] < 1.0 and tm["n"] == 24
+    assert math.isfinite(agr["items"]["trajectory_correct"]["kappa"])
+    v = t.judge["verdicts"]["synthetic/bin0_00__none"]
+    assert v["items"] is None and "no JSON" in v["error"]
+
+
+def test_aggregate_snapshot(tables, data_regression):
+    """The whole-run means of the template run, frozen: any change to lexicons or metrics shows up here."""
+    rows = [a for a in tables.aggregate if a["task"] == "all"]
+    data_regression.check({"aggregate_all_tasks": rows})
+
+
+@pytest.mark.slow
+def test_real_encoder_cold_then_warm_in_another_process_is_bit_identical(tmp_path):
+    pytest.importorskip("sentence_transformers")  # the [embed] extra
+    from vlmproprio.embeddings import encoder_spec
+
+    run, fx = tmp_path / "run", tmp_path / "fx"
+    write_synthetic_run(run, fx, n_door=1, n_per_bin=1, n_frames=9, conditions=("none", "both"))
+    cold = score_run(run, encoder=encoder_spec())
+    assert cold.timing["embeddings"]["computed"] == cold.timing["embeddings"]["requested"] > 0
+    first = _score_files(run)
+    assert _run_scoring_subprocess(run, fake=False) == {"heavy": [], "computed": 0}
+    assert _score_files(run) == first
+    meta = json.loads(first["meta.json"])
+    assert meta["encoder"]["name"] == "sentence-transformers/all-MiniLM-L6-v2" and meta["encoder"]["dim"] == 384
+    # real sentence similarities: a caption is most like its own phase's neighbours
+    tr = cold.traces["synthetic/door_00__both"]
+    assert all(x is not None and -1.0 <= x <= 1.0 for x in tr["trace"])
+    across = [x for j, x in enumerate(tr["trace"]) if j in tr["true_boundaries"]]
+    within = [x for j, x in enumerate(tr["trace"]) if j not in tr["true_boundaries"]]
+    assert sum(within) / len(within) > sum(across) / len(across)

@@ -1,0 +1,111 @@
+"""The embedding cache and the encoder: batch-mate independence, byte-only storage, lazy torch."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import diskcache
+import numpy as np
+import pytest
+
+from scoring_helpers import fake_spec
+from vlmproprio.embeddings import (
+    CachedEmbedder,
+    EmbeddingError,
+    EmbeddingStore,
+    SentenceEncoder,
+    encoder_spec,
+    folder_revision,
+    text_key,
+)
+
+
+def test_store_round_trip_is_bytes_exact(tmp_path):
+    vec = np.array([0.1, -2.5, 3.25, np.float32(1) / 3], dtype=np.float32)
+    with EmbeddingStore(tmp_path / "emb") as store:
+        store.put_many("enc-a", {"hello": vec, "": vec * 2})
+    with EmbeddingStore(tmp_path / "emb") as store:
+        got = store.get_many("enc-a", ["hello", "missing", ""])
+        assert set(got) == {"hello", ""}
+        assert got["hello"].tobytes() == vec.tobytes()
+        assert store.get_many("enc-b", ["hello"]) == {}  # another encoder never sees these vectors
+
+
+def test_store_refuses_pickled_rows(tmp_path):
+    d = tmp_path / "emb"
+    with diskcache.Cache(str(d)) as plain:  # somebody wrote a pickled object where a vector should be
+        plain.set(text_key("enc", "evil"), {"not": "bytes"})
+    with EmbeddingStore(d) as store, pytest.raises(EmbeddingError, match="refused"):
+        store.get_many("enc", ["evil"])
+    with EmbeddingStore(d) as store, pytest.raises(EmbeddingError, match="vectors"):
+        store.put_many("enc", {"x": "not a vector"})  # type: ignore[dict-item]
+
+
+def test_cached_embedder_never_loads_an_encoder_when_all_is_cached(tmp_path):
+    spec = fake_spec()
+    vec = np.ones(4, dtype=np.float32)
+    with EmbeddingStore(tmp_path / "emb") as store:
+        store.put_many(spec.key, {"a": vec, "b": vec})
+        emb = CachedEmbedder(spec, store)
+        assert set(emb.embed(["a", "b", "a"])) == {"a", "b"}
+        assert emb.stats.cached == 2 and emb.stats.computed == 0 and not emb.stats.torch_loaded
+        with pytest.raises(EmbeddingError, match="nonexistent"):
+            emb.embed(["c"])  # the fake encoder cannot load: proves the cold path is taken only here
+
+
+def test_encoder_key_covers_what_decides_the_bits(tmp_path):
+    spec = fake_spec()
+    assert dataclasses.replace(spec, batch_size=16).key != spec.key
+    assert dataclasses.replace(spec, revision="test-2").key != spec.key
+    assert dataclasses.replace(spec, threads=7).key == spec.key  # thread count does not change bits (tested below)
+    (tmp_path / "m").mkdir()
+    (tmp_path / "m" / "w.bin").write_bytes(b"abc")
+    r1 = folder_revision(tmp_path / "m")
+    (tmp_path / "m" / "w.bin").write_bytes(b"abd")
+    assert folder_revision(tmp_path / "m") != r1
+    with pytest.raises(EmbeddingError, match="not found"):
+        folder_revision(tmp_path / "nope")
+
+
+# ---------------------------------------------------------------------------------------------- real encoder
+
+TEXTS = [
+    "The robot turns the handle down.",
+    "The robot pulls the door open toward itself while holding the handle firmly.",
+    "The gripper opens.",
+    "The robot lifts the cereal box up.",  # same token length as the first: they share batches
+    "The arm moves forward and down toward the door handle with its gripper open; x 0.512, y -0.031.",
+    "Release.",
+    "The robot carries the cereal box left toward the far left compartment of the target bin.",
+    "The gripper closes on the box.",
+    "The robot arm moves back.",
+]
+
+
+@pytest.fixture(scope="module")
+def encoder():
+    pytest.importorskip("sentence_transformers")  # the [embed] extra; replay never needs it
+    return SentenceEncoder(encoder_spec(threads=1))
+
+
+def test_embedding_is_independent_of_batch_mates(encoder):
+    mixed = encoder.encode(TEXTS)
+    assert mixed.dtype == np.float32 and mixed.shape == (len(TEXTS), 384)
+    for i in (0, 3, 5):
+        alone = encoder.encode([TEXTS[i]])
+        assert alone[0].tobytes() == mixed[i].tobytes(), TEXTS[i]
+    reordered = encoder.encode(TEXTS[::-1] + TEXTS[:4])
+    assert reordered[: len(TEXTS)][::-1].tobytes() == mixed.tobytes()
+
+
+def test_embedding_bits_do_not_depend_on_thread_count(encoder):
+    two = SentenceEncoder(dataclasses.replace(encoder.spec, threads=2))
+    two._model = encoder._load()  # same weights, other thread count
+    assert two.encode(TEXTS[:2]).tobytes() == encoder.encode(TEXTS[:2]).tobytes()
+
+
+def test_embedding_is_the_sentence_transformers_embedding(encoder):
+    ours = encoder.encode(TEXTS[:4])
+    ref = encoder._load().encode(TEXTS[:4], batch_size=1, convert_to_numpy=True)
+    np.testing.assert_allclose(ours, ref, atol=1e-5)
+    assert encoder.spec.revision.startswith("sha256:")

@@ -1,0 +1,87 @@
+"""Paired statistics: mean difference, bootstrap CI, sign-flip p-values on cases with known answers."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+
+from vlmproprio.stats import bootstrap_ci, paired_difference, sign_flip_p
+
+
+def test_all_episodes_improve_by_one():
+    r = paired_difference([1.0] * 10, [0.0] * 10)
+    assert (r.n, r.mean_a, r.mean_b, r.mean_diff) == (10, 1.0, 0.0, 1.0)
+    assert (r.ci_low, r.ci_high) == (1.0, 1.0)
+    assert r.p_value == 2 / 2**10  # only all-plus and all-minus are as extreme
+    assert r.method == "exact sign-flip"
+
+
+# (differences, exact two-sided p worked out by hand)
+P_CASES = [
+    ([1, 2, 3], 2 / 8),
+    ([3, 1, 1, 1], 2 / 16),  # flipping any 1 gives |4| < 6
+    ([1, 1, 1, 1], 2 / 16),
+    ([2, 1, 1], 2 / 8),  # other patterns give |2|, |0|
+    ([1, -1, 1, -1], 1.0),
+    ([0, 0, 0], 1.0),
+]
+
+
+def _brute_p(d):
+    obs = abs(sum(d))
+    pats = list(itertools.product([1, -1], repeat=len(d)))
+    return sum(abs(sum(s * x for s, x in zip(p, d, strict=True))) >= obs - 1e-12 for p in pats) / len(pats)
+
+
+@pytest.mark.parametrize(("d", "p"), P_CASES)
+def test_exact_sign_flip_p(d, p):
+    assert _brute_p(d) == pytest.approx(p)
+    got, method = sign_flip_p(np.array(d, dtype=float))
+    assert got == pytest.approx(p) and method == "exact sign-flip"
+
+
+def test_exact_p_matches_scipy_permutation_test():
+    stats = pytest.importorskip("scipy.stats")  # a cross-check with an independent implementation
+    rng = np.random.default_rng(3)
+    a, b = rng.normal(0.3, 1, 11), rng.normal(0, 1, 11)
+    ours = paired_difference(a, b)
+    ref = stats.permutation_test(
+        (a, b),
+        lambda x, y: np.mean(x - y),
+        permutation_type="samples",
+        alternative="two-sided",
+        n_resamples=np.inf,
+    )
+    assert ours.p_value == pytest.approx(ref.pvalue, abs=1e-12)
+
+
+def test_monte_carlo_p_is_close_to_exact_and_seeded():
+    rng = np.random.default_rng(5)
+    d = rng.normal(0.4, 1, 14)
+    exact, _ = sign_flip_p(d, max_exact=16)
+    mc, method = sign_flip_p(d, n_perm=20000, seed=1, max_exact=8)
+    assert method.startswith("monte-carlo")
+    assert abs(mc - exact) < 0.015
+    assert sign_flip_p(d, n_perm=20000, seed=1, max_exact=8) == (mc, method)
+
+
+def test_bootstrap_ci_is_seeded_and_brackets_the_mean():
+    d = np.random.default_rng(11).normal(0.3, 1.0, 10)
+    lo, hi = bootstrap_ci(d, seed=7)
+    assert (lo, hi) == bootstrap_ci(d, seed=7)
+    assert lo < d.mean() < hi
+    assert bootstrap_ci(d, seed=8) != (lo, hi)
+    # a constant difference has a zero-width interval
+    assert bootstrap_ci(np.full(12, 0.25)) == (0.25, 0.25)
+
+
+def test_paired_difference_direction_and_errors():
+    r = paired_difference([0.0, 0.5, 1.0], [1.0, 1.0, 1.0])
+    assert r.mean_diff == pytest.approx(-0.5) and r.ci_high <= 0.0
+    with pytest.raises(ValueError, match="differ in length"):
+        paired_difference([1.0], [1.0, 2.0])
+    with pytest.raises(ValueError, match="finite"):
+        paired_difference([float("nan")], [1.0])
+    assert paired_difference([], []).n == 0
