@@ -87,13 +87,12 @@ def cmd_models(args: argparse.Namespace) -> int:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from vlmproprio.backends.registry import BackendSettings
-    from vlmproprio.chat import GenerationConfig
     from vlmproprio.conditions import parse_conditions
     from vlmproprio.pipeline import PipelineSettings
     from vlmproprio.prompts import PromptOptions
     from vlmproprio.runner import RunPlan, run
 
-    if args.max_new_tokens < 1:
+    if args.max_new_tokens is not None and args.max_new_tokens < 1:
         raise UsageError(f"--max-new-tokens must be at least 1, got {args.max_new_tokens}")
     plan = RunPlan(
         models=tuple(args.model),
@@ -108,8 +107,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             frame_stride=args.frame_stride,
             max_images_p3=args.max_images_p3,
             prompt=PromptOptions(example=not args.no_example),
-            generation=GenerationConfig(max_new_tokens=args.max_new_tokens),
         ),
+        max_new_tokens=args.max_new_tokens,
         backend=BackendSettings(
             device=args.device,
             dtype=args.dtype,
@@ -137,8 +136,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 
 def _score_and_report(run_dir: Path, fixtures: Path | None) -> int:
-    from vlmproprio.report import write_report
     from vlmproprio.evaluation import score_run
+    from vlmproprio.report import write_report
 
     score_run(run_dir, fixtures=fixtures)
     index = write_report(run_dir)
@@ -263,7 +262,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     g.add_argument("--max-images-p3", type=int, help="cap on images in Process 3 for small-context models")
     g.add_argument("--no-example", action="store_true", help="leave the worked cube-stacking example out")
-    g.add_argument("--max-new-tokens", type=int, default=512, help="per answer (default 512)")
+    g.add_argument("--max-new-tokens", type=int, help="per answer (default: the model's, 512; tiny test models 64)")
     g = p.add_argument_group("local models (hf)")
     g.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N | auto (default cpu)")
     g.add_argument("--dtype", default="auto", help="auto | float32 | bfloat16 | float16 (default auto)")

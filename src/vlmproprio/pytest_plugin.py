@@ -1,4 +1,265 @@
-"""pytest plugin (registered through the ``pytest11`` entry point): options and fixtures for benchmark/.
+"""pytest plugin (registered through the ``pytest11`` entry point): the benchmark as pytest tests.
 
-Kept import-light: pytest loads it in every session, including ones that never touch a model.
+After installing the package, ``pytest benchmark/ --model qwen2-vl`` runs the benchmark:
+
+* ``--model NAME`` (repeatable; default ``reference`` and ``tiny-qwen2-vl``), ``--conditions``,
+  ``--episodes``, ``--mode replay|live|record`` (default replay: answers from the committed cassettes,
+  CPU only), ``--run-dir`` (keep the run, its scores and embeddings), ``--bench-fixtures``.
+* Tests that take the ``bench_cell`` fixture are parametrised per (model, episode, condition), with ids
+  like ``reference-door_03-both``, so ``-k door_03`` or ``-k both`` select cells and a failure names one.
+* Each model is run once per session, lazily, for exactly the episodes and conditions of the cells
+  selected, then scored; a model that cannot run here (no cassette, no weights, no server) is skipped with
+  the reason and how to get it. ``reference`` and ``tiny-qwen2-vl`` need nothing and always run.
+
+Kept import-light: pytest loads it in every session, including ones that never touch the benchmark.
 """
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+DEFAULT_MODELS = ("reference", "tiny-qwen2-vl")
+CELL_FIXTURE = "bench_cell"
+MODEL_FIXTURE = "bench_model"
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    g = parser.getgroup("vlmproprio", "vlmproprio benchmark")
+    g.addoption(
+        "--model",
+        action="append",
+        dest="vp_models",
+        metavar="NAME",
+        help=f"model to benchmark (repeatable; default: {', '.join(DEFAULT_MODELS)}); see `vlmproprio models`",
+    )
+    g.addoption(
+        "--conditions", dest="vp_conditions", default="all", help="conditions (comma list, paper, controls, all)"
+    )
+    g.addoption("--episodes", dest="vp_episodes", default=None, help="episode ids, comma separated (default: all)")
+    g.addoption(
+        "--mode",
+        dest="vp_mode",
+        default="replay",
+        choices=("replay", "live", "record"),
+        help="replay: answers from cassettes only (default, CPU); live: run the model and fill the cache; "
+        "record: live and write cassettes",
+    )
+    g.addoption("--run-dir", dest="vp_run_dir", default=None, help="where runs, scores and reports go (default: temp)")
+    g.addoption(
+        "--bench-fixtures", dest="vp_fixtures", default=None, help="fixture folder (default: <rootdir>/fixtures)"
+    )
+
+
+@dataclass(frozen=True)
+class CellId:
+    model: str
+    episode_id: str
+    condition: str
+
+    def __str__(self) -> str:
+        return f"{self.model}-{self.episode_id}-{self.condition}"
+
+
+@dataclass
+class ModelResult:
+    """A model's run, scored: rows keyed by (episode, condition), the sweep, the paired table."""
+
+    name: str
+    run_dir: Path
+    rows: dict[tuple[str, str], dict]
+    sweep: dict[tuple[str, str], list[dict]]
+    paired: list[dict]
+    episodes: tuple[str, ...]
+    conditions: tuple[str, ...]
+
+
+@dataclass
+class BenchSession:
+    """What the session's selected benchmark tests need, and the runs made for them (once per model)."""
+
+    config: pytest.Config
+    fixtures: Path
+    mode: str
+    run_root: Path | None  # None: a temporary folder made on first use
+    models: tuple[str, ...]
+    conditions: tuple[str, ...]
+    episodes: tuple[str, ...]
+    needed: dict[str, tuple[set[str], set[str]]] = field(default_factory=dict)
+    results: dict[str, ModelResult] = field(default_factory=dict)
+    failures: dict[str, str] = field(default_factory=dict)
+
+    def need(self, model: str, episodes, conditions) -> None:
+        eps, conds = self.needed.setdefault(model, (set(), set()))
+        eps.update(episodes)
+        conds.update(conditions)
+
+    def availability(self, model: str):
+        from vlmproprio.backends.registry import BackendSettings, model_availability
+
+        settings = BackendSettings(cassette_dir=self.fixtures / "responses")
+        return model_availability(model, self.mode, settings)
+
+    def result(self, model: str, tmp_path_factory: pytest.TempPathFactory) -> ModelResult:
+        if model in self.failures:
+            pytest.fail(self.failures[model], pytrace=False)
+        if self.run_root is None:
+            self.run_root = tmp_path_factory.mktemp("vlmproprio-bench")
+        if model not in self.results:
+            try:
+                self.results[model] = self._run(model)
+            except Exception as exc:
+                from vlmproprio.errors import VlmproprioError
+
+                if not isinstance(exc, VlmproprioError):
+                    raise
+                self.failures[model] = f"{model}: {exc}"
+                pytest.fail(self.failures[model], pytrace=False)
+        return self.results[model]
+
+    def _run(self, model: str) -> ModelResult:
+        from vlmproprio.backends.registry import BackendSettings, model_slug
+        from vlmproprio.conditions import parse_conditions
+        from vlmproprio.evaluation import score_run
+        from vlmproprio.runner import RunPlan, run
+
+        eps, conds = self.needed.get(model, (set(self.episodes), set(self.conditions)))
+        order = {c: i for i, c in enumerate(self.conditions)}
+        assert self.run_root is not None
+        run_dir = self.run_root / model_slug(model)
+        plan = RunPlan(
+            models=(model,),
+            conditions=tuple(parse_conditions(sorted(conds, key=order.get))),
+            fixtures=self.fixtures,
+            out=run_dir,
+            episode_ids=tuple(sorted(eps)),
+            mode=self.mode,
+            backend=BackendSettings(threads=1),  # pinned: bit-identical CPU runs of local models
+            progress=False,
+        )
+        run(plan)
+        tables = score_run(run_dir, fixtures=self.fixtures)
+        sweep: dict[tuple[str, str], list[dict]] = {}
+        for r in tables.sweep:
+            sweep.setdefault((r["episode_id"], r["condition"]), []).append(r)
+        return ModelResult(
+            name=model,
+            run_dir=run_dir,
+            rows={(r["episode_id"], r["condition"]): r for r in tables.rows},
+            sweep=sweep,
+            paired=list(tables.paired),
+            episodes=tuple(sorted(eps)),
+            conditions=tuple(sorted(conds, key=order.get)),
+        )
+
+
+def _session(config: pytest.Config) -> BenchSession:
+    existing = getattr(config, "_vlmproprio_bench", None)
+    if existing is not None:
+        return existing
+    from vlmproprio.conditions import parse_conditions
+    from vlmproprio.episodes import list_episode_ids
+
+    fixtures = Path(config.getoption("vp_fixtures") or Path(config.rootpath) / "fixtures")
+    episodes_opt = config.getoption("vp_episodes")
+    episodes = tuple(e.strip() for e in episodes_opt.split(",") if e.strip()) if episodes_opt else ()
+    if not episodes:
+        episodes = tuple(list_episode_ids(fixtures))
+    known = set(list_episode_ids(fixtures))
+    unknown = [e for e in episodes if e not in known]
+    if unknown:
+        raise pytest.UsageError(
+            f"--episodes: unknown episode(s) {', '.join(unknown)} in {fixtures} (known: {', '.join(sorted(known))})"
+        )
+    models = tuple(config.getoption("vp_models") or DEFAULT_MODELS)
+    from vlmproprio.backends.registry import model_slug
+    from vlmproprio.errors import VlmproprioError
+
+    try:
+        for m in models:
+            model_slug(m)
+        conditions = tuple(c.name for c in parse_conditions(config.getoption("vp_conditions")))
+    except VlmproprioError as exc:
+        raise pytest.UsageError(str(exc)) from None
+    run_dir = config.getoption("vp_run_dir")
+    session = BenchSession(
+        config=config,
+        fixtures=fixtures,
+        mode=config.getoption("vp_mode"),
+        run_root=Path(run_dir) if run_dir else None,
+        models=models,
+        conditions=conditions,
+        episodes=episodes,
+    )
+    config._vlmproprio_bench = session  # type: ignore[attr-defined]
+    return session
+
+
+def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
+    if CELL_FIXTURE in metafunc.fixturenames:
+        s = _session(metafunc.config)
+        cells = [CellId(m, e, c) for m in s.models for e in s.episodes for c in s.conditions]
+        metafunc.parametrize(CELL_FIXTURE, cells, ids=[str(c) for c in cells], indirect=True)
+    elif MODEL_FIXTURE in metafunc.fixturenames:
+        s = _session(metafunc.config)
+        metafunc.parametrize(MODEL_FIXTURE, list(s.models), ids=list(s.models), indirect=True)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Record which cells survived -k / deselection, so each model runs exactly what is needed."""
+    bench = getattr(config, "_vlmproprio_bench", None)
+    if bench is None:
+        return
+    for item in items:
+        callspec = getattr(item, "callspec", None)
+        if callspec is None:
+            continue
+        if CELL_FIXTURE in callspec.params:
+            cell: CellId = callspec.params[CELL_FIXTURE]
+            bench.need(cell.model, [cell.episode_id], [cell.condition])
+        elif MODEL_FIXTURE in callspec.params:
+            # whole-model tests (the science gates) need every selected episode and condition
+            bench.need(callspec.params[MODEL_FIXTURE], bench.episodes, bench.conditions)
+
+
+def _skip_unavailable(s: BenchSession, model: str) -> None:
+    avail = s.availability(model)
+    if not avail:
+        pytest.skip(f"{model} cannot run in {s.mode} mode here: {avail.reason}")
+
+
+@dataclass(frozen=True)
+class CellResult:
+    cell: CellId
+    row: dict
+    sweep: list[dict]
+    run_dir: Path
+
+
+@pytest.fixture
+def bench_cell(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> CellResult:
+    """The scored result of one (model, episode, condition) cell of the benchmark."""
+    s = _session(request.config)
+    cell: CellId = request.param
+    _skip_unavailable(s, cell.model)
+    res = s.result(cell.model, tmp_path_factory)
+    key = (cell.episode_id, cell.condition)
+    if key not in res.rows:
+        pytest.fail(f"{cell}: the run produced no transcript for this cell", pytrace=False)
+    return CellResult(cell, res.rows[key], res.sweep.get(key, []), res.run_dir)
+
+
+@pytest.fixture
+def bench_model(request: pytest.FixtureRequest, tmp_path_factory: pytest.TempPathFactory) -> ModelResult:
+    """A model's whole scored run (every selected episode and condition)."""
+    s = _session(request.config)
+    _skip_unavailable(s, request.param)
+    return s.result(request.param, tmp_path_factory)
+
+
+@pytest.fixture(scope="session")
+def bench_session(request: pytest.FixtureRequest) -> BenchSession:
+    return _session(request.config)

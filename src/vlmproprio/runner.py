@@ -14,7 +14,7 @@ import datetime as _dt
 import json
 import platform
 import subprocess
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from importlib import metadata
 from pathlib import Path
 from urllib.parse import urlsplit, urlunsplit
@@ -41,7 +41,14 @@ class RunPlan:
     cache_dir: Path | None = None  # None: vlmproprio.cache.default_cache_dir()
     pipeline: PipelineSettings = field(default_factory=PipelineSettings)
     backend: object = None  # vlmproprio.backends.registry.BackendSettings; None: defaults
+    max_new_tokens: int | None = None  # None: each model's registry default (512; tiny models 64)
     progress: bool = True
+
+    def pipeline_for(self, model: str) -> PipelineSettings:
+        from vlmproprio.backends.registry import parse_model_name
+
+        n = self.max_new_tokens or parse_model_name(model).max_new_tokens
+        return replace(self.pipeline, generation=replace(self.pipeline.generation, max_new_tokens=n))
 
 
 @dataclass
@@ -49,6 +56,7 @@ class ModelRun:
     name: str
     slug: str
     mode: str
+    pipeline: dict
     identity: dict
     stats: dict
     transcripts: list[Transcript]
@@ -107,6 +115,7 @@ def _write_run_file(plan: RunPlan, episodes: list[Episode], runs: list[ModelRun]
                 "name": r.name,
                 "slug": r.slug,
                 "mode": r.mode,
+                "pipeline": r.pipeline,
                 "identity": r.identity,
                 "stats": r.stats,
                 "cassette": r.cassette,
@@ -114,7 +123,6 @@ def _write_run_file(plan: RunPlan, episodes: list[Episode], runs: list[ModelRun]
             }
             for r in runs
         ],
-        "pipeline": plan.pipeline.to_dict(),
         "backend_settings": _backend_settings_record(settings),
         "calls_per_episode_condition": {
             e.episode_id: calls_per_episode(len(e.frames), plan.pipeline.k) for e in episodes
@@ -143,8 +151,9 @@ def run_model(name: str, plan: RunPlan, episodes: list[Episode], peers: list[Epi
     cache = None if plan.mode == "replay" else ResponseCache(plan.cache_dir or default_cache_dir())
     try:
         cached = CachedBackend(backend, mode=plan.mode, cache=cache, model=slug)
+        pipeline = plan.pipeline_for(name)
         transcripts = caption_episodes(
-            episodes, plan.conditions, cached.answer, slug, plan.pipeline, peers=peers, progress=plan.progress
+            episodes, plan.conditions, cached.answer, slug, pipeline, peers=peers, progress=plan.progress
         )
         for t in transcripts:
             write_transcript(plan.out, t)
@@ -155,7 +164,9 @@ def run_model(name: str, plan: RunPlan, episodes: list[Episode], peers: list[Epi
             cassette = str(path)
             if path.resolve().parent == (plan.fixtures / "responses").resolve():
                 update_manifest(plan.fixtures, [path.relative_to(plan.fixtures).as_posix()])
-        return ModelRun(name, slug, plan.mode, dict(cached.identity), dict(cached.stats), transcripts, cassette)
+        return ModelRun(
+            name, slug, plan.mode, pipeline.to_dict(), dict(cached.identity), dict(cached.stats), transcripts, cassette
+        )
     finally:
         backend.close()
         if cache is not None:

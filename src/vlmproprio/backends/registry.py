@@ -44,6 +44,8 @@ class ModelSpec:
     backend: str  # "hf" | "openai" | "reference"
     weights: str  # HF repo id or folder | OpenAI model name | "tiny:<family>" | "" (reference)
     description: str
+    # default answer length; tiny random models write gibberish to the limit, so theirs is short
+    max_new_tokens: int = 512
 
 
 REGISTRY: dict[str, ModelSpec] = {
@@ -67,11 +69,13 @@ REGISTRY: dict[str, ModelSpec] = {
             "GPT-4V, the paper's model, through the OpenAI API (it may no longer be served: replay its cassette)",
         ),
         ModelSpec("gpt-4o", "openai", "gpt-4o", "GPT-4o through the OpenAI API"),
-        ModelSpec("tiny-qwen2-vl", "hf", TINY_PREFIX + "qwen2-vl", "tiny random Qwen2-VL built locally; tests only"),
         ModelSpec(
-            "tiny-qwen2.5-vl", "hf", TINY_PREFIX + "qwen2.5-vl", "tiny random Qwen2.5-VL built locally; tests only"
+            "tiny-qwen2-vl", "hf", TINY_PREFIX + "qwen2-vl", "tiny random Qwen2-VL built locally; tests only", 64
         ),
-        ModelSpec("tiny-llava", "hf", TINY_PREFIX + "llava", "tiny random LLaVA built locally; tests only"),
+        ModelSpec(
+            "tiny-qwen2.5-vl", "hf", TINY_PREFIX + "qwen2.5-vl", "tiny random Qwen2.5-VL built locally; tests only", 64
+        ),
+        ModelSpec("tiny-llava", "hf", TINY_PREFIX + "llava", "tiny random LLaVA built locally; tests only", 64),
         ModelSpec(
             "reference",
             "reference",

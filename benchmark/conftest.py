@@ -1,0 +1,1 @@
+"""benchmark/ is a package so that its tests can share benchmark/metrics.py."""

@@ -1,0 +1,58 @@
+"""What the regression gates compare, per (model, episode, condition) cell.
+
+Counts, booleans and keyword hits are compared exactly (YAML baselines); every float is compared with
+FLOAT_TOLERANCE (CSV baselines). Replay from cassettes is bit-identical, so a difference is a real
+change: of the pipeline, the prompts, the parser, the lexicons, the encoder or the model's answers.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+BASELINES = Path(__file__).parent / "baselines"
+# absolute and relative tolerance for float metrics (rates, F1, similarities)
+FLOAT_TOLERANCE = {"atol": 1e-6, "rtol": 1e-6}
+ITEMS = ("object", "action", "trajectory")
+
+
+def baseline_path(model_slug: str, episode_id: str, condition: str, suffix: str) -> Path:
+    return BASELINES / model_slug / episode_id / f"{condition}{suffix}"
+
+
+def exact_metrics(row: dict, sweep: list[dict]) -> dict:
+    return {
+        "parse": {
+            "frames": row["n_frames"],
+            "frames_missing": row["frames_missing"],
+            "frames_recovered": row["frames_recovered"],
+            "scenes": row["n_scenes"],
+            "scenes_missing": row["scenes_missing"],
+            "final_missing": row["final_missing"],
+        },
+        "final_caption": {
+            "words": row["final_words"],
+            "keyword_hits": row["final_hits"],
+            **{item: {k: row[f"final_{item}_{k}"] for k in ("mentioned", "correct", "wrong")} for item in ITEMS},
+            "all_correct": row["final_all_correct"],
+        },
+        "segmentation": {
+            "ground_truth_boundaries": row["seg_gt_boundaries"],
+            "threshold": row["seg_threshold"],
+            "points_at_threshold": row["seg_points"],
+            "points_per_threshold": {f"{r['threshold']:.2f}": r["points"] for r in sweep},
+        },
+    }
+
+
+def float_metrics(row: dict) -> dict[str, list[float]]:
+    names = ["final_hits_per_word", "scene_words"]
+    names += [f"scene_{item}_{k}" for item in ITEMS for k in ("mentioned", "correct", "wrong")]
+    names += ["scene_all_correct"]
+    names += [f"seg_{m}_tol{t}" for t in (0, 1, 2) for m in ("p", "r", "f1")]
+    names += ["seg_edit", "sim_mean", "sim_min"]
+    return {n: [float(row[n])] for n in names}
+
+
+def sweep_metrics(sweep: list[dict]) -> dict[str, list[float]]:
+    cols = ("threshold", "p_tol1", "r_tol1", "f1_tol0", "f1_tol1", "f1_tol2", "edit")
+    return {c: [float(r[c]) for r in sweep] for c in cols}

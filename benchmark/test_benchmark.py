@@ -1,0 +1,44 @@
+"""The benchmark: regression gates per (model, episode, condition).
+
+Run ``pytest benchmark/ --model NAME``; update baselines with ``--force-regen`` after a change you mean.
+Each gate is its own test so that one ``--force-regen`` run rewrites all of a cell's baselines.
+"""
+
+from __future__ import annotations
+
+from benchmark.metrics import FLOAT_TOLERANCE, baseline_path, exact_metrics, float_metrics, sweep_metrics
+
+
+def _slug(cell) -> str:
+    from vlmproprio.backends.registry import model_slug
+
+    return model_slug(cell.cell.model)
+
+
+def test_counts(bench_cell, data_regression) -> None:
+    """Parse statuses, word counts, keyword hits, rubric verdicts, segmentation points: exact."""
+    c = bench_cell.cell
+    data_regression.check(
+        exact_metrics(bench_cell.row, bench_cell.sweep),
+        fullpath=baseline_path(_slug(bench_cell), c.episode_id, c.condition, ".yml"),
+    )
+
+
+def test_rates(bench_cell, num_regression) -> None:
+    """Scene-caption rates, keyword hits per word, boundary P/R/F1, edit score, similarities: tolerance."""
+    c = bench_cell.cell
+    num_regression.check(
+        float_metrics(bench_cell.row),
+        fullpath=baseline_path(_slug(bench_cell), c.episode_id, c.condition, ".rates.csv"),
+        default_tolerance=FLOAT_TOLERANCE,
+    )
+
+
+def test_threshold_sweep(bench_cell, num_regression) -> None:
+    """Boundary P/R/F1 and edit score at every threshold 0.00..1.00: tolerance."""
+    c = bench_cell.cell
+    num_regression.check(
+        sweep_metrics(bench_cell.sweep),
+        fullpath=baseline_path(_slug(bench_cell), c.episode_id, c.condition, ".sweep.csv"),
+        default_tolerance=FLOAT_TOLERANCE,
+    )
