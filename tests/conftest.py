@@ -4,11 +4,15 @@ from __future__ import annotations
 
 import io
 import os
+import shutil
+import tempfile
 
 # Before anything imports torch or huggingface_hub: no network, one thread (bit-identical floats).
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
+# Tests never read or write a developer's caches (responses, embeddings, tiny models built elsewhere).
+os.environ["VLMPROPRIO_CACHE"] = tempfile.mkdtemp(prefix="vlmproprio-test-cache-")
 
 import numpy as np
 import pytest
@@ -87,3 +91,7 @@ def vlmproprio_home(tmp_path, monkeypatch):
     home = tmp_path / "home"
     monkeypatch.setenv("VLMPROPRIO_HOME", str(home))
     return home
+
+
+def pytest_sessionfinish(session, exitstatus) -> None:
+    shutil.rmtree(os.environ["VLMPROPRIO_CACHE"], ignore_errors=True)

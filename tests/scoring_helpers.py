@@ -307,11 +307,11 @@ def fake_vector(text: str, dim: int = 16) -> np.ndarray:
 
 def prefill_embeddings(run_dir: Path, encoder_key: str, cache_dir: Path | None = None, dim: int = 16) -> int:
     """Put a fake vector for every frame caption of the run into the embedding cache; returns how many."""
-    from vlmproprio.embeddings import EmbeddingStore
+    from vlmproprio.embeddings import EmbeddingStore, default_embedding_dir
     from vlmproprio.transcripts import read_transcripts
 
     texts = {f.text for t in read_transcripts(run_dir) for f in t.frames if f.text.strip() and f.status != "missing"}
-    with EmbeddingStore(cache_dir or run_dir / "embeddings") as store:
+    with EmbeddingStore(cache_dir or default_embedding_dir()) as store:
         store.put_many(encoder_key, {t: fake_vector(t, dim) for t in sorted(texts)})
     return len(texts)
 

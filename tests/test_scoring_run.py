@@ -258,9 +258,11 @@ def test_aggregate_snapshot(tables, data_regression):
 
 
 @pytest.mark.slow
-def test_real_encoder_cold_then_warm_in_another_process_is_bit_identical(tmp_path):
+def test_real_encoder_cold_then_warm_in_another_process_is_bit_identical(tmp_path, monkeypatch):
     pytest.importorskip("sentence_transformers")  # the [embed] extra
     from vlmproprio.embeddings import encoder_spec
+
+    monkeypatch.setenv("VLMPROPRIO_CACHE", str(tmp_path / "cache"))  # cold: a cache of its own
 
     run, fx = tmp_path / "run", tmp_path / "fx"
     write_synthetic_run(run, fx, n_door=1, n_per_bin=1, n_frames=9, conditions=("none", "both"))

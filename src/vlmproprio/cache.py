@@ -231,10 +231,15 @@ def _entry_from_record(rec: object, *, model: str = "", identity: dict | None = 
 # ---------------------------------------------------------------------------------------------- the runtime cache
 
 
-def default_cache_dir() -> Path:
-    """$VLMPROPRIO_CACHE, else ./.vlmproprio-cache/responses."""
+def cache_root() -> Path:
+    """Where vlmproprio keeps its caches: $VLMPROPRIO_CACHE, else ./.vlmproprio-cache."""
     env = os.environ.get(CACHE_ENV)
-    return Path(env) if env else DEFAULT_CACHE_DIR
+    return Path(env) if env else DEFAULT_CACHE_DIR.parent
+
+
+def default_cache_dir() -> Path:
+    """The response cache: <cache root>/responses."""
+    return cache_root() / DEFAULT_CACHE_DIR.name
 
 
 @functools.cache

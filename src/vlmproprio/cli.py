@@ -249,7 +249,11 @@ def build_parser() -> argparse.ArgumentParser:
         "to <fixtures>/responses/<model>.jsonl; replay: answers only from that cassette",
     )
     p.add_argument("--out", type=Path, help="run directory (default: runs/latest)")
-    p.add_argument("--cache-dir", type=Path, help="response cache (default: $VLMPROPRIO_CACHE or ./.vlmproprio-cache)")
+    p.add_argument(
+        "--cache-dir",
+        type=Path,
+        help="response cache (default: $VLMPROPRIO_CACHE/responses, else ./.vlmproprio-cache/responses)",
+    )
     p.add_argument("--report", action="store_true", help="also score the run and write its report")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     g = p.add_argument_group("method")
@@ -284,7 +288,9 @@ def build_parser() -> argparse.ArgumentParser:
     pe = csub.add_parser("export", help="cache -> fixtures/responses/<model>.jsonl (merged with what is there)")
     pe.add_argument("--model", required=True, help="model name, as given to --model when the answers were made")
     pe.add_argument(
-        "--cache", type=Path, help="response cache folder (default: $VLMPROPRIO_CACHE or ./.vlmproprio-cache/responses)"
+        "--cache",
+        type=Path,
+        help="response cache folder (default: $VLMPROPRIO_CACHE/responses, else ./.vlmproprio-cache/responses)",
     )
     pe.add_argument("--cassette-dir", type=Path, default=Path("fixtures/responses"))
     pe.add_argument("--out", type=Path, help="cassette file (default: <cassette-dir>/<model slug>.jsonl)")
@@ -293,7 +299,9 @@ def build_parser() -> argparse.ArgumentParser:
     pi = csub.add_parser("import", help="cassette -> response cache")
     pi.add_argument("cassette", type=Path, help="a .jsonl cassette")
     pi.add_argument(
-        "--cache", type=Path, help="response cache folder (default: $VLMPROPRIO_CACHE or ./.vlmproprio-cache/responses)"
+        "--cache",
+        type=Path,
+        help="response cache folder (default: $VLMPROPRIO_CACHE/responses, else ./.vlmproprio-cache/responses)",
     )
     pi.set_defaults(func=cmd_cassette)
 
@@ -313,7 +321,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--encoder-batch-size", type=int, default=8, help="fixed encoder batch size (part of the cache key)")
     p.add_argument("--encoder-threads", type=int, default=1, help="torch threads while encoding (default 1)")
     p.add_argument(
-        "--embedding-cache", type=Path, default=None, help="embedding cache folder (default RUN_DIR/embeddings)"
+        "--embedding-cache",
+        type=Path,
+        default=None,
+        help="embedding cache folder (default: $VLMPROPRIO_CACHE/embeddings, else ./.vlmproprio-cache/embeddings)",
     )
     p.set_defaults(func=cmd_score)
 

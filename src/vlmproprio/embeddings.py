@@ -263,6 +263,13 @@ def text_key(encoder_key: str, text: str) -> str:
     return hashlib.sha256(json.dumps([encoder_key, text], ensure_ascii=False).encode("utf-8")).hexdigest()
 
 
+def default_embedding_dir() -> Path:
+    """<cache root>/embeddings (see vlmproprio.cache.cache_root)."""
+    from vlmproprio.cache import cache_root
+
+    return cache_root() / "embeddings"
+
+
 class EmbeddingStore:
     """(encoder key, text) -> float32 vector, on disk, shared safely between processes (diskcache/SQLite)."""
 

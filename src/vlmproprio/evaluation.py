@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vlmproprio.embeddings import default_embedding_dir
 from vlmproprio.episodes import Episode, atomic_write_text, load_episodes
 from vlmproprio.errors import VlmproprioError
 from vlmproprio.scoring import ITEMS, CaptionScore, expectation_for, load_lexicon, score_text
@@ -310,7 +311,8 @@ def score_run(
     """Score every transcript of a run and (by default) write RUN_DIR/scores/.
 
     ``encoder`` is an ``embeddings.EncoderSpec`` (default: the packaged all-MiniLM-L6-v2); embeddings are cached
-    in ``embedding_cache`` (default RUN_DIR/embeddings), so re-scoring a run needs no torch. ``judge`` (off by
+    in ``embedding_cache`` (default <cache root>/embeddings, shared by every run: its entries are keyed
+    by encoder and text), so re-scoring a run needs no torch. ``judge`` (off by
     default) is any vlmproprio Backend that also grades the final captions; its agreement with the rubric
     goes to scores/judge.json."""
     from vlmproprio.embeddings import CachedEmbedder, EmbeddingStore, encoder_spec
@@ -332,7 +334,7 @@ def score_run(
     t_loaded = time.perf_counter()
 
     spec = encoder if encoder is not None else encoder_spec()
-    cache_dir = Path(embedding_cache) if embedding_cache is not None else run_dir / "embeddings"
+    cache_dir = Path(embedding_cache) if embedding_cache is not None else default_embedding_dir()
     aligned = {}
     for t in transcripts:
         where = f"{run_dir}/transcripts/{t.model}/{t.episode_id}__{t.condition}.json"

@@ -1,0 +1,83 @@
+"""Data flows one way: no module imports a later stage (docs/architecture.md lists the stages).
+
+Every ``import vlmproprio.x`` / ``from vlmproprio.x import`` in a module counts, lazy imports inside
+functions included; imports under ``if TYPE_CHECKING:`` are annotations only and do not.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "vlmproprio"
+
+# Stage of every module (dotted, relative to vlmproprio); a module may import its own stage or earlier ones.
+STAGES: list[tuple[str, ...]] = [
+    ("errors",),
+    ("primitives", "episodes", "chat"),
+    ("summary", "record"),
+    ("conditions",),
+    ("prompts",),
+    ("cache",),
+    ("backends", "testing"),
+    ("transcripts", "parsing"),
+    ("pipeline",),
+    ("runner",),
+    ("scoring", "embeddings", "segmentation"),
+    ("stats",),
+    ("evaluation",),
+    ("report",),
+    ("cli", "pytest_plugin"),
+]
+
+
+def stage_of(module: str) -> int:
+    top = module.split(".")[0]
+    for i, names in enumerate(STAGES):
+        if top in names:
+            return i
+    raise AssertionError(f"module vlmproprio.{module} is in no stage: add it to STAGES and docs/architecture.md")
+
+
+def _modules() -> list[tuple[str, Path]]:
+    out = []
+    for path in sorted(SRC.rglob("*.py")):
+        rel = path.relative_to(SRC).with_suffix("")
+        parts = [p for p in rel.parts if p != "__init__"]
+        if parts:
+            out.append((".".join(parts), path))
+    return out
+
+
+def _type_checking_nodes(tree: ast.AST) -> set[int]:
+    skip: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            skip.update(id(n) for b in node.body for n in ast.walk(b))
+    return skip
+
+
+def imported_stages(path: Path) -> list[str]:
+    tree = ast.parse(path.read_text())
+    skip = _type_checking_nodes(tree)
+    found = []
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            if node.module == "vlmproprio":
+                found += [a.name for a in node.names]
+            elif node.module.startswith("vlmproprio."):
+                found.append(node.module[len("vlmproprio.") :])
+        elif isinstance(node, ast.Import):
+            found += [a.name[len("vlmproprio.") :] for a in node.names if a.name.startswith("vlmproprio.")]
+    return found
+
+
+@pytest.mark.parametrize(("module", "path"), _modules(), ids=[m for m, _ in _modules()])
+def test_no_module_imports_a_later_stage(module: str, path: Path) -> None:
+    mine = stage_of(module)
+    later = [m for m in imported_stages(path) if m != "__version__" and stage_of(m) > mine]
+    assert not later, f"vlmproprio.{module} (stage {mine}) imports later stage(s): {', '.join(later)}"
