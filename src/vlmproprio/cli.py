@@ -65,13 +65,15 @@ def cmd_make_tiny_model(args: argparse.Namespace) -> int:
 def cmd_cassette(args: argparse.Namespace) -> int:
     from vlmproprio.backends.registry import cassette_path, model_slug
     from vlmproprio.cache import ResponseCache, default_cache_dir, export_cassette, import_cassette
+    from vlmproprio.episodes import register_fixture_file
 
     cache_dir = args.cache or default_cache_dir()
     with ResponseCache(cache_dir) as cache:
         if args.action == "export":
             path = args.out or cassette_path(args.model, args.cassette_dir)
             path, n = export_cassette(cache, model_slug(args.model), path, merge=not args.replace)
-            print(f"wrote {n} answers of {args.model} to {path}")
+            manifest = register_fixture_file(path)
+            print(f"wrote {n} answers of {args.model} to {path}" + (f" (updated {manifest})" if manifest else ""))
         else:
             model, n = import_cassette(cache, args.cassette)
             print(f"imported {n} new answers of {model} from {args.cassette} into {cache_dir}")

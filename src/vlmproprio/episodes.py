@@ -241,6 +241,16 @@ def update_manifest(root: Path, rel_paths: Iterable[str]) -> Path:
     return path
 
 
+def register_fixture_file(path: Path) -> Path | None:
+    """Update the manifest entry of a file written into a fixture set's sub-folder (a cassette in
+    ``<fixtures>/responses/``); returns the manifest, or None when the folder above holds no manifest."""
+    path = Path(path).resolve()
+    root = path.parent.parent
+    if not (root / MANIFEST_NAME).is_file():
+        return None
+    return update_manifest(root, [path.relative_to(root).as_posix()])
+
+
 def read_manifest(root: Path) -> dict[str, str]:
     path = Path(root) / MANIFEST_NAME
     if not path.is_file():

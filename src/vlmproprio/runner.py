@@ -20,7 +20,7 @@ from pathlib import Path
 from urllib.parse import urlsplit, urlunsplit
 
 from vlmproprio.conditions import Condition
-from vlmproprio.episodes import Episode, atomic_write_text, load_episodes, update_manifest
+from vlmproprio.episodes import Episode, atomic_write_text, load_episodes, register_fixture_file
 from vlmproprio.errors import UsageError
 from vlmproprio.pipeline import PipelineSettings, calls_per_episode, caption_episodes
 from vlmproprio.transcripts import Transcript, write_transcript
@@ -162,8 +162,7 @@ def run_model(name: str, plan: RunPlan, episodes: list[Episode], peers: list[Epi
             path = cassette_path(name, settings.cassette_dir)
             cached.export_cassette(path)
             cassette = str(path)
-            if path.resolve().parent == (plan.fixtures / "responses").resolve():
-                update_manifest(plan.fixtures, [path.relative_to(plan.fixtures).as_posix()])
+            register_fixture_file(path)
         return ModelRun(
             name, slug, plan.mode, pipeline.to_dict(), dict(cached.identity), dict(cached.stats), transcripts, cassette
         )
