@@ -21,7 +21,6 @@ atomic rename; the loser of the race uses the winner's build).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import random
@@ -31,6 +30,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from vlmproprio.backends.base import BackendError
+from vlmproprio.episodes import sha256_file
 
 FAMILIES: tuple[str, ...] = ("qwen2-vl", "qwen2.5-vl", "llava")
 BUILD_VERSION = 1
@@ -270,18 +270,10 @@ def _save_llava(out: Path, seed: int) -> None:
     processor.save_pretrained(out)  # LLaVA has no video processor: the ordinary save/load round-trips
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def file_hashes(folder: Path) -> dict[str, str]:
     """sha256 of every file in ``folder`` (recursively), by relative POSIX path."""
     folder = Path(folder)
-    return {p.relative_to(folder).as_posix(): _sha256(p) for p in sorted(folder.rglob("*")) if p.is_file()}
+    return {p.relative_to(folder).as_posix(): sha256_file(p) for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 def check_family(family: str) -> str:
