@@ -53,6 +53,13 @@ def pytest_addoption(parser: pytest.Parser) -> None:
     )
 
 
+def pytest_configure(config: pytest.Config) -> None:
+    # A wrong --model / --episodes / --conditions is a usage error before collection (one clean line), but
+    # only when given: the plugin is loaded in every pytest session, including other projects'.
+    if config.getoption("vp_models") or config.getoption("vp_episodes") or config.getoption("vp_conditions") != "all":
+        _session(config)
+
+
 @dataclass(frozen=True)
 class CellId:
     model: str
