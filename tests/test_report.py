@@ -16,6 +16,9 @@ from vlmproprio.report import ReportError, compare_runs, load_run_scores, write_
 from vlmproprio.report.page import highlight
 from vlmproprio.report.tables import fmt_paired, fmt_value
 
+for _module in ("matplotlib", "jinja2"):
+    pytest.importorskip(_module, reason="reports need the [report] extra: pip install 'vlmproprio[report]'")
+
 PLOTS = (
     "fig5_success__synthetic.png",
     "fig6_points__synthetic.png",

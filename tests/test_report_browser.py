@@ -17,6 +17,9 @@ from PIL import Image
 from report_helpers import make_run
 from vlmproprio.report import write_report
 
+for _module in ("matplotlib", "jinja2"):
+    pytest.importorskip(_module, reason="reports need the [report] extra: pip install 'vlmproprio[report]'")
+
 FLAGS = (
     "--headless",
     "--no-sandbox",
@@ -127,3 +130,9 @@ def test_a_missing_image_is_flagged_broken(copied_report, tmp_path):
     states = {i["src"]: i.get("data-state") for i in d.images if i["src"].endswith(".png")}
     assert states["fig6_points__synthetic.png"] == "broken"
     assert states["fig5_success__synthetic.png"] == "ok"
+
+
+def test_without_chromium_the_test_skips_saying_how_to_install_it(monkeypatch):
+    monkeypatch.setattr(shutil, "which", lambda name: None)
+    with pytest.raises(pytest.skip.Exception, match=r"apt-get install -y chromium"):
+        chromium()

@@ -393,7 +393,7 @@ def build_parser() -> argparse.ArgumentParser:
         "compare",
         help="metric differences between two runs, or two models in one run",
         description="Print the differences B - A of the caption and segmentation metrics per task and "
-        "condition, paired by episode, with bootstrap 95%% CIs and sign-flip p-values. Rows are matched on "
+        "condition, paired by episode, with bootstrap 95% CIs and sign-flip p-values. Rows are matched on "
         "model/task/condition; give --model-a/--model-b to compare two models (inside one run: omit RUN_B).",
     )
     p.add_argument("run_a", type=Path, metavar="RUN_A", help="scored run directory (A)")

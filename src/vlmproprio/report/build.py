@@ -171,6 +171,15 @@ def _load_episodes(s: RunScores, fixtures: str | Path | None, notices: list[str]
     return {e.episode_id: e for e in load_episodes(root, s.episodes)}
 
 
+def require_report_packages() -> None:
+    """matplotlib and jinja2 come with the [report] extra; say so instead of failing deep inside."""
+    import importlib.util
+
+    missing = [m for m in ("matplotlib", "jinja2") if importlib.util.find_spec(m) is None]
+    if missing:
+        raise ReportError(f"writing a report needs {' and '.join(missing)}: pip install 'vlmproprio[report]'")
+
+
 def _write_public(path: Path, text: str) -> None:
     atomic_write_text(path, text)
     path.chmod(PUBLIC_MODE)
@@ -205,6 +214,7 @@ def write_report(
 
     The run must be scored (RUN_DIR/scores/, `vlmproprio score`). Frames come from the fixture folder
     (``fixtures``, default the one named in run.json); without it the page says so and shows no frames."""
+    require_report_packages()
     s = load_run_scores(run_dir)
     out = Path(out) if out is not None else Path(run_dir) / REPORT_DIR
     out.mkdir(parents=True, exist_ok=True)

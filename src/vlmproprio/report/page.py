@@ -403,7 +403,7 @@ def run_facts(s: RunScores) -> list[tuple[str, str]]:
         ident = s.model_identity(model).get("identity")
         if ident:
             facts.append((f"model {model}", ", ".join(f"{k}={v}" for k, v in ident.items() if v not in ("", None))))
-    return facts
+    return [(k, v) for k, v in facts if v not in ("?", "None", "")]
 
 
 def metadata_blocks(s: RunScores) -> list[tuple[str, str]]:
