@@ -81,6 +81,15 @@ def example_episodes(s: RunScores, requested: Sequence[str] | None = None) -> li
     return out
 
 
+def _frame_texts(t: Transcript) -> list[str]:
+    """Frame caption texts by frame index (a frame absent from the transcript is an empty text)."""
+    texts = [""] * (max((f.frame_index for f in t.frames), default=-1) + 1)
+    for f in t.frames:
+        if f.frame_index >= 0:
+            texts[f.frame_index] = f.text
+    return texts
+
+
 def write_plots(
     s: RunScores,
     out: Path,
@@ -136,11 +145,7 @@ def write_plots(
         for eid in example_episodes(s, examples):
             task = s.task_of(eid)
             num = "7" if task == "door" else "8"
-            captions = {
-                c: [fr.text for fr in sorted(transcripts[(model, eid, c)].frames, key=lambda fr: fr.frame_index)]
-                for c in trace_conds
-                if (model, eid, c) in transcripts
-            }
+            captions = {c: _frame_texts(t) for c in trace_conds if (t := transcripts.get((model, eid, c)))}
             f = f"fig{num}_trace_{_safe(eid)}__{m}.png"
             save_figure(trace_figure(s, model, eid, trace_conds, captions), out / f)
             plots.append(
