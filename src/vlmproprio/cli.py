@@ -142,8 +142,56 @@ def _score_and_report(run_dir: Path, fixtures: Path | None) -> int:
     from vlmproprio.report import write_report
 
     score_run(run_dir, fixtures=fixtures)
-    index = write_report(run_dir)
+    index = write_report(run_dir, fixtures=fixtures)
     print(f"report: {index}")
+    return 0
+
+
+def _comma_list(text: str | None) -> list[str] | None:
+    return [x.strip() for x in text.split(",") if x.strip()] if text else None
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from vlmproprio.report import scores_present, write_report
+
+    if not scores_present(args.run_dir):
+        from vlmproprio.evaluation import score_run
+
+        if not args.run_dir.is_dir():
+            raise UsageError(f"{args.run_dir}: run directory not found")
+        score_run(args.run_dir, fixtures=args.fixtures)
+        print(f"scored {args.run_dir} (no scores were there)")
+    index = write_report(
+        args.run_dir,
+        fixtures=args.fixtures,
+        out=args.out,
+        examples=_comma_list(args.examples),
+        trace_conditions=_comma_list(args.trace_conditions),
+    )
+    print(f"report: {index}")
+    return 0
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from vlmproprio.episodes import atomic_write_text
+    from vlmproprio.report import compare_runs
+
+    kwargs = {}
+    if args.metrics:
+        kwargs["metrics"] = _comma_list(args.metrics)
+    comparison = compare_runs(
+        args.run_a,
+        args.run_b,
+        model_a=args.model_a,
+        model_b=args.model_b,
+        tasks=_comma_list(args.task),
+        **kwargs,
+    )
+    text = comparison.to_markdown()
+    print(text, end="")
+    if args.out:
+        atomic_write_text(args.out, text)
+        print(f"wrote {args.out}")
     return 0
 
 
@@ -329,6 +377,45 @@ def build_parser() -> argparse.ArgumentParser:
         help="embedding cache folder (default: $VLMPROPRIO_CACHE/embeddings, else ./.vlmproprio-cache/embeddings)",
     )
     p.set_defaults(func=cmd_score)
+
+    p = sub.add_parser(
+        "report",
+        help="tables, plots (paper Figs. 5-8) and an HTML page for a run -> RUN_DIR/report/",
+        description="Write RUN_DIR/report/: report.md (aggregate and paired tables), PNG plots mirroring the "
+        "paper's Figs. 5-8 plus boundary F1 vs threshold, and index.html (summary, plots, tables, every "
+        "episode's frames beside its captions with the rubric matches highlighted). Scores the run first "
+        "if RUN_DIR/scores/ is missing.",
+    )
+    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory written by `vlmproprio run`")
+    p.add_argument("--fixtures", type=Path, default=None, help="fixture folder (default: the one in RUN_DIR/run.json)")
+    p.add_argument("--out", type=Path, default=None, help="report folder (default: RUN_DIR/report)")
+    p.add_argument(
+        "--examples",
+        metavar="IDS",
+        help="comma list of episodes for the trace figures (default: the first Door and the first bin episode)",
+    )
+    p.add_argument(
+        "--trace-conditions",
+        metavar="CONDS",
+        help="comma list of conditions in the trace figures (default: none,both, as in the paper)",
+    )
+    p.set_defaults(func=cmd_report)
+
+    p = sub.add_parser(
+        "compare",
+        help="metric differences between two runs, or two models in one run",
+        description="Print the differences B - A of the caption and segmentation metrics per task and "
+        "condition, paired by episode, with bootstrap 95% CIs and sign-flip p-values. Rows are matched on "
+        "model/task/condition; give --model-a/--model-b to compare two models (inside one run: omit RUN_B).",
+    )
+    p.add_argument("run_a", type=Path, metavar="RUN_A", help="scored run directory (A)")
+    p.add_argument("run_b", type=Path, metavar="RUN_B", nargs="?", help="scored run directory (B; default RUN_A)")
+    p.add_argument("--model-a", help="model of side A")
+    p.add_argument("--model-b", help="model of side B")
+    p.add_argument("--task", metavar="TASKS", help="comma list of door, pick_place, all (default: every one)")
+    p.add_argument("--metrics", metavar="COLS", help="comma list of score columns (default: the main metrics)")
+    p.add_argument("--out", type=Path, help="also write the comparison as Markdown to this file")
+    p.set_defaults(func=cmd_compare)
 
     return parser
 

@@ -1,0 +1,119 @@
+"""What a report reads: the score tables of a run (RUN_DIR/scores/), its run.json and transcripts, its episodes.
+
+Everything is read from files written by `vlmproprio run` and `vlmproprio score`; nothing is recomputed
+here, so a report always shows the numbers the scores hold.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from vlmproprio.errors import VlmproprioError
+
+SCORES_DIR = "scores"
+# the score files a report needs; sweep.json (per episode) is left out: the plots use the means
+SCORE_FILES = ("rows", "aggregate", "sweep_aggregate", "paired", "audit", "traces", "meta")
+TASK_ORDER = ("door", "pick_place", "all")
+TASK_LABELS = {"door": "Door opening", "pick_place": "Bin pick-placing", "all": "All episodes"}
+
+
+class ReportError(VlmproprioError):
+    """A run directory that cannot be reported on; the message names the file and what to do."""
+
+
+@dataclass
+class RunScores:
+    """The score tables of one run, as written by vlmproprio.evaluation.write_score_tables."""
+
+    run_dir: Path
+    manifest: dict
+    rows: list[dict]
+    aggregate: list[dict]
+    sweep_aggregate: list[dict]
+    paired: list[dict]
+    audit: dict
+    traces: dict
+    meta: dict
+    models: list[str] = field(default_factory=list)
+    conditions: list[str] = field(default_factory=list)
+    episodes: list[str] = field(default_factory=list)
+
+    @property
+    def threshold(self) -> float:
+        return float(self.meta.get("segmentation", {}).get("default_threshold", 0.65))
+
+    def tasks(self, with_all: bool = False) -> list[str]:
+        present = {r["task"] for r in self.rows}
+        tasks = [t for t in TASK_ORDER if t in present] + sorted(present - set(TASK_ORDER))
+        return [*tasks, "all"] if with_all and len(tasks) > 1 else tasks
+
+    def task_of(self, episode_id: str) -> str | None:
+        return next((r["task"] for r in self.rows if r["episode_id"] == episode_id), None)
+
+    def aggregate_row(self, model: str, task: str, condition: str) -> dict | None:
+        return next(
+            (a for a in self.aggregate if (a["model"], a["task"], a["condition"]) == (model, task, condition)), None
+        )
+
+    def model_identity(self, model: str) -> dict:
+        for m in self.manifest.get("models", []):
+            if isinstance(m, dict) and model in (m.get("slug"), m.get("name")):
+                return m
+        return {}
+
+
+def scores_present(run_dir: str | Path) -> bool:
+    d = Path(run_dir) / SCORES_DIR
+    return all((d / f"{name}.json").is_file() for name in SCORE_FILES)
+
+
+def _read_json(path: Path, kind: type):
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ReportError(f"{path}: missing; score the run first (`vlmproprio score {path.parent.parent}`)") from None
+    except (OSError, ValueError) as exc:
+        raise ReportError(f"{path}: cannot read ({exc}); re-score the run (`vlmproprio score ...`)") from exc
+    if not isinstance(data, kind):
+        raise ReportError(f"{path}: expected a JSON {kind.__name__}; re-score the run (`vlmproprio score ...`)")
+    return data
+
+
+def load_run_scores(run_dir: str | Path) -> RunScores:
+    """Read RUN_DIR/run.json (optional) and RUN_DIR/scores/*.json; checks they describe the same transcripts."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise ReportError(f"{run_dir}: run directory not found")
+    d = run_dir / SCORES_DIR
+    kinds = {"audit": dict, "traces": dict, "meta": dict}
+    t = {name: _read_json(d / f"{name}.json", kinds.get(name, list)) for name in SCORE_FILES}
+    manifest = _read_json(run_dir / "run.json", dict) if (run_dir / "run.json").is_file() else {}
+    for i, r in enumerate(t["rows"]):
+        if not isinstance(r, dict) or not all(k in r for k in ("model", "episode_id", "task", "condition")):
+            raise ReportError(f"{d / 'rows.json'}: row {i} lacks model/episode_id/task/condition; re-score the run")
+    scored = {f"{r['model']}/{r['episode_id']}__{r['condition']}" for r in t["rows"]}
+    on_disk = {f"{p.parent.name}/{p.stem}" for p in (run_dir / "transcripts").glob("*/*.json")}
+    if on_disk and on_disk != scored:
+        new, gone = sorted(on_disk - scored), sorted(scored - on_disk)
+        what = f"{len(new)} transcript(s) not scored (e.g. {new[0]})" if new else f"{len(gone)} scored but gone"
+        raise ReportError(f"{d}: scores are out of date: {what}; re-score with `vlmproprio score {run_dir}`")
+    meta = t["meta"]
+    models = [m for m in meta.get("models", []) if isinstance(m, str)] or sorted({r["model"] for r in t["rows"]})
+    conditions = [c for c in meta.get("conditions", []) if isinstance(c, str)]
+    episodes = [e for e in meta.get("episodes", []) if isinstance(e, str)]
+    return RunScores(
+        run_dir=run_dir,
+        manifest=manifest,
+        rows=t["rows"],
+        aggregate=t["aggregate"],
+        sweep_aggregate=t["sweep_aggregate"],
+        paired=t["paired"],
+        audit=t["audit"],
+        traces=t["traces"],
+        meta=meta,
+        models=models,
+        conditions=conditions or list(dict.fromkeys(r["condition"] for r in t["rows"])),
+        episodes=episodes or list(dict.fromkeys(r["episode_id"] for r in t["rows"])),
+    )
