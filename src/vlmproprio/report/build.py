@@ -11,7 +11,6 @@ from vlmproprio.report.data import TASK_LABELS, ReportError, RunScores, load_run
 from vlmproprio.report.page import (
     FRAMES_DIR,
     LEGEND,
-    PUBLIC_MODE,
     PageContext,
     episode_view,
     metadata_blocks,
@@ -185,11 +184,6 @@ def require_report_packages() -> None:
         raise ReportError(f"writing a report needs {' and '.join(missing)}: pip install 'vlmproprio[report]'")
 
 
-def _write_public(path: Path, text: str) -> None:
-    atomic_write_text(path, text)
-    path.chmod(PUBLIC_MODE)
-
-
 def _episode_order(s: RunScores) -> list[str]:
     """Door before bins (the paper's order), run order inside a task."""
     tasks = s.tasks()
@@ -233,7 +227,7 @@ def write_report(
 
     plots = write_plots(s, out, transcripts, examples, trace_conditions)
     tables = report_tables(s)
-    _write_public(out / MARKDOWN, markdown_report(s, tables, [(p.file, p.title) for p in plots]))
+    atomic_write_text(out / MARKDOWN, markdown_report(s, tables, [(p.file, p.title) for p in plots]))
 
     keep = {p.file for p in plots}
     descriptions = _descriptions(s.conditions)
@@ -270,6 +264,6 @@ def write_report(
         legend=LEGEND,
     )
     index = out / INDEX
-    _write_public(index, render_page(ctx))
+    atomic_write_text(index, render_page(ctx))
     _remove_stale(out, keep)
     return index

@@ -23,7 +23,6 @@ from vlmproprio.report.tables import Table, fmt_value
 from vlmproprio.transcripts import Transcript
 
 # atomic writes create private (0600) files; a report is meant to be shared (CI artifact, web server)
-PUBLIC_MODE = 0o644
 THUMB_PX = 128
 THUMB_QUALITY = 80
 FRAMES_DIR = "frames"
@@ -251,7 +250,6 @@ def write_thumbnail(src: Path, out_dir: Path, size: int = THUMB_PX) -> str:
             buf = io.BytesIO()
             im.save(buf, format="JPEG", quality=THUMB_QUALITY, optimize=True)
         atomic_write_bytes(dest, buf.getvalue())
-        dest.chmod(PUBLIC_MODE)
     return name
 
 
