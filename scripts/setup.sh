@@ -23,8 +23,9 @@ fi
 pip_install() { .venv/bin/python -m pip install --quiet --disable-pip-version-check "$@" 2>&1 | grep -v -e "^WARNING: Location" -e "BuildBackendWarning" -e "return '\\\\n'.join" || true; }
 pip_install "$TORCH_SPEC"
 pip_install -e ".[all,dev]"
-.venv/bin/python -c "import torch, transformers, sentence_transformers, robosuite, vlmproprio" \
-  || { echo "setup: the install is incomplete (see pip's messages above)" >&2; exit 1; }
+check="import torch, transformers, sentence_transformers, robosuite, vlmproprio"
+.venv/bin/python -c "$check" >/dev/null 2>&1 \
+  || { .venv/bin/python -c "$check"; echo "setup: the install is incomplete (see above)" >&2; exit 1; }
 if .venv/bin/python -c "import torchvision" 2>/dev/null; then
   echo "setup: torchvision is installed in .venv; it breaks Qwen2-VL beside the CPU torch: remove it" >&2
   exit 1
