@@ -44,15 +44,21 @@ def exact_metrics(row: dict, sweep: list[dict]) -> dict:
     }
 
 
+def _float(value) -> float:
+    """Undefined metrics (e.g. a similarity when every caption is missing) are stored as None: NaN here,
+    and NaN equals NaN in num_regression."""
+    return float("nan") if value is None else float(value)
+
+
 def float_metrics(row: dict) -> dict[str, list[float]]:
     names = ["final_hits_per_word", "scene_words"]
     names += [f"scene_{item}_{k}" for item in ITEMS for k in ("mentioned", "correct", "wrong")]
     names += ["scene_all_correct"]
     names += [f"seg_{m}_tol{t}" for t in (0, 1, 2) for m in ("p", "r", "f1")]
     names += ["seg_edit", "sim_mean", "sim_min"]
-    return {n: [float(row[n])] for n in names}
+    return {n: [_float(row[n])] for n in names}
 
 
 def sweep_metrics(sweep: list[dict]) -> dict[str, list[float]]:
     cols = ("threshold", "p_tol1", "r_tol1", "f1_tol0", "f1_tol1", "f1_tol2", "edit")
-    return {c: [float(r[c]) for r in sweep] for c in cols}
+    return {c: [_float(r[c]) for r in sweep] for c in cols}

@@ -1,0 +1,46 @@
+"""The live path of a real transformers model, end to end: the tiny Qwen2-VL run live on one episode gives
+exactly the answers its committed cassette holds (and so the transcripts the benchmark replays)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from vlmproprio.cache import read_cassette
+from vlmproprio.conditions import parse_conditions
+from vlmproprio.episodes import load_episode
+from vlmproprio.pipeline import calls_per_episode
+from vlmproprio.runner import RunPlan, run
+from vlmproprio.transcripts import read_transcripts
+
+pytest.importorskip("transformers", reason="the live path needs the [hf] extra")
+
+FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
+MODEL = "tiny-qwen2-vl"
+
+
+@pytest.mark.slow
+def test_tiny_model_live_matches_its_cassette(tmp_path: Path) -> None:
+    from vlmproprio.backends.registry import BackendSettings
+
+    cassette = read_cassette(FIXTURES / "responses" / f"{MODEL}.jsonl")
+    # images only, images + both states, states only: every kind of prompt the model can get
+    conditions = tuple(parse_conditions("none,both,state_only"))
+    common = dict(models=(MODEL,), conditions=conditions, fixtures=FIXTURES, episode_ids=("door_02",), progress=False)
+    [live] = run(
+        RunPlan(
+            out=tmp_path / "live",
+            mode="live",
+            cache_dir=tmp_path / "cache",
+            backend=BackendSettings(threads=1),
+            **common,
+        )
+    )
+    n_frames = len(load_episode(FIXTURES, "door_02").frames)
+    assert live.stats["misses"] == len(conditions) * calls_per_episode(n_frames, 5)  # all asked of the model
+    used = {r.key for t in live.transcripts for r in t.requests}
+    assert used <= set(cassette.entries), "a live request has a key the cassette lacks"
+    run(RunPlan(out=tmp_path / "replay", mode="replay", **common))
+    strip = lambda ts: [t.to_dict() | {"requests": None, "timing": None} for t in ts]  # noqa: E731
+    assert strip(read_transcripts(tmp_path / "live")) == strip(read_transcripts(tmp_path / "replay"))
