@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import textwrap
+import unicodedata
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -142,8 +143,14 @@ def sweep_figure(s: RunScores, model: str, metric: str, ylabel: str, title: str)
     return fig
 
 
+def _printable(text: str) -> str:
+    """Model text can hold control characters (a random model writes any byte); fonts have no glyph for
+    them, so they are shown as the replacement character instead."""
+    return "".join("\ufffd" if unicodedata.category(ch) in ("Cc", "Cf", "Cs", "Co", "Cn") else ch for ch in text)
+
+
 def _short(text: str) -> str:
-    one = textwrap.shorten(" ".join(text.split()), CAPTION_CHARS, placeholder=" …")
+    one = textwrap.shorten(" ".join(_printable(text).split()), CAPTION_CHARS, placeholder=" …")
     return textwrap.fill(one, 34)
 
 
