@@ -252,54 +252,78 @@ def _object_signal(env) -> dict:
     return {"object": scenes.object_pos(env)}
 
 
-def record_episode(spec: EpisodeSpec, out_root: Path | None = None, max_steps: int | None = None, env=None) -> dict:
+@dataclass
+class PolicyRun:
+    trace: Trace
+    phases: list[str]  # per step
+    actions: list[np.ndarray]  # per step but the last
+    cut: bool  # stopped by max_steps before the policy finished
+
+
+def run_policy(
+    env,
+    policy: Iterable[tuple[str, np.ndarray]],
+    camera: str,
+    signals: Callable[[object], dict] | None = None,
+    max_steps: int | None = None,
+    episode_id: str = "",
+) -> PolicyRun:
+    """Drive a freshly reset env with a policy of (phase, action) pairs and trace it, then rest with the gripper
+    open until the next sampled step so that the last frame shows the finished task. ``max_steps`` cuts the
+    policy short (tests)."""
+    from vlmproprio.record.operators import OPEN
+
+    tracer = Tracer(env, camera, signals)
+    tracer.start()
+    phases: list[str] = []
+    actions: list[np.ndarray] = []
+    cut = False
+    for phase, action in policy:
+        step = len(phases)
+        tracer.observe()
+        phases.append(phase)
+        tracer.step(action)
+        actions.append(action)
+        if step + 1 >= HORIZON:
+            raise RecordingError(f"{episode_id}: operator still busy after {HORIZON} steps")
+        if max_steps is not None and step + 1 >= max_steps:
+            cut = True
+            break
+    last = phases[-1]
+    rest = np.zeros(7) + np.array([0, 0, 0, 0, 0, 0, OPEN])
+    while True:
+        phases.append(last)
+        if tracer.observe():
+            break
+        tracer.step(rest)
+        actions.append(rest)
+    return PolicyRun(tracer.trace, phases, actions, cut)
+
+
+def operator_policy(env, spec: EpisodeSpec) -> tuple[Iterable[tuple[str, np.ndarray]], tuple[str, ...]]:
+    """The scripted operator of an episode (seeded by its spec) and its phase names."""
+    from vlmproprio.record import operators
+
+    rng = np.random.default_rng(spec.seed)
+    hand = operators.Hand(env, operators.Style.sample(rng), rng)
+    if spec.task.task == "door":
+        return operators.door_operator(env, hand), scenes.DOOR_PHASES
+    return operators.pick_place_operator(env, hand, spec.bin_index), scenes.bin_phases(spec.bin_index)
+
+
+def record_episode(spec: EpisodeSpec, out_root: Path | None = None) -> dict:
     """Run one episode; write it under ``out_root/episodes/`` when given. Returns a summary dict.
 
     Raises RecordingError when the operator does not really succeed (the fixture set must not contain a
-    failed demonstration). ``max_steps`` cuts the operator short and ``env`` replaces the env the recorder
-    makes (an env reset for this episode, e.g. wrapped by robosuite's data-collection wrapper): both are for
-    tests, and a cut episode is returned with ``success`` False instead of raising."""
+    failed demonstration)."""
     prepare_robosuite()
-    from vlmproprio.record import operators
-
     t0 = time.perf_counter()
-    own_env = env is None
-    env = scenes.make_env(spec.task, spec.seed, HORIZON) if own_env else env
+    env = scenes.make_env(spec.task, spec.seed, HORIZON)
     try:
-        rng = np.random.default_rng(spec.seed)
-        hand = operators.Hand(env, operators.Style.sample(rng), rng)
-        if spec.task.task == "door":
-            policy = operators.door_operator(env, hand)
-            phase_names = scenes.DOOR_PHASES
-        else:
-            policy = operators.pick_place_operator(env, hand, spec.bin_index)
-            phase_names = scenes.bin_phases(spec.bin_index)
-        tracer = Tracer(env, spec.task.camera, _object_signal if spec.task.task == "pick_place" else None)
-        tracer.start()
-        phases: list[str] = []
-        actions: list[np.ndarray] = []
-        cut = False
-        for phase, action in policy:
-            step = len(phases)
-            tracer.observe()
-            phases.append(phase)
-            tracer.step(action)
-            actions.append(action)
-            if step + 1 >= HORIZON:
-                raise RecordingError(f"{spec.episode_id}: operator still busy after {HORIZON} steps")
-            if max_steps is not None and step + 1 >= max_steps:
-                cut = True
-                break
-        # Rest until the next sampled step so that the last frame shows the finished task.
-        last = phases[-1]
-        rest = np.zeros(7) + np.array([0, 0, 0, 0, 0, 0, operators.OPEN])
-        while True:
-            phases.append(last)
-            if tracer.observe():
-                break
-            tracer.step(rest)
-            actions.append(rest)
-        trace = tracer.trace
+        policy, phase_names = operator_policy(env, spec)
+        signals = _object_signal if spec.task.task == "pick_place" else None
+        run = run_policy(env, policy, spec.task.camera, signals, episode_id=spec.episode_id)
+        trace = run.trace
         if spec.task.task == "door":
             success = scenes.door_success(env)
             extra = {"door_hinge_rad": round(scenes.door_hinge(env), 4)}
@@ -312,16 +336,14 @@ def record_episode(spec: EpisodeSpec, out_root: Path | None = None, max_steps: i
                 "in_compartments": [scenes.in_compartment(env, k) for k in range(4)],
             }
     finally:
-        if own_env:
-            env.close()
-    if not success and not cut:
+        env.close()
+    if not success:
         raise RecordingError(f"{spec.episode_id} (seed {spec.seed}): the operator did not complete the task ({extra})")
-    success = success and not cut
 
     wall = time.perf_counter() - t0
     meta, states = build_episode(
         trace,
-        phases,
+        run.phases,
         phase_names,
         episode_id=spec.episode_id,
         task=spec.task,
@@ -340,9 +362,6 @@ def record_episode(spec: EpisodeSpec, out_root: Path | None = None, max_steps: i
         "wall_s": wall,
         "meta": meta,
         "images": trace.images,
-        "trace": trace,
-        "phases": phases,
-        "actions": actions,
     }
 
 
