@@ -118,6 +118,14 @@ def test_lift_phases_have_no_transport():
     assert 250 <= starts["release"] <= 253 and starts["lift"] >= 100
 
 
+def test_a_failed_grasp_is_still_a_grasp_and_a_release():
+    opening, grip, obj = _pick_signals()
+    obj[:, :] = obj[0]  # the object slips out: never lifted, never moved
+    starts = _starts(demos.pick_phases(opening, grip, obj, scenes.bin_phases(2), transport=True))
+    assert list(starts) == ["approach", "descend", "grasp", "release", "retreat"]
+    assert 82 <= starts["grasp"] <= 84 and 250 <= starts["release"] <= 253
+
+
 def test_no_grasp_means_one_approach_phase():
     n = 50
     opening = np.full(n, 0.08)

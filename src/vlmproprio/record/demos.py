@@ -68,23 +68,25 @@ so that slow drift (a held lever sagging, fingers easing open on a handle)
 does not pass for the start of a motion. The gripper is *closing* / *opening*
 when the finger opening (``joints[7]``) falls / rises by 5 mm.
 
-* door (``scenes.DOOR_PHASES``): approach; *grasp handle* from the closing onset
-  after the last fully open step before the lever turns; *turn handle down* from
-  the lever's onset (latch joint +0.1 rad); *pull door open* from the hinge's
-  onset (+0.05 rad); *release and retreat* from the first of the fingers opening
-  or the lever turning back (-0.1 rad) after the pull.
+* door (``scenes.DOOR_PHASES``): approach; *grasp handle* from the closing
+  onset after the last fully open step before the lever turns (with no turn
+  and no pull: the first closing onset); *turn handle down* from the lever's
+  onset (latch joint +0.1 rad); *pull door open* from the hinge's onset
+  (+0.05 rad); *release and retreat* from the first of the fingers opening or
+  the lever turning back (-0.1 rad) after the pull.
 * pick_place (``scenes.bin_phases(k)``, PickPlaceCereal and PickPlaceCan):
   approach; *descend* from the step after the grip site was last within 1 cm
   of its highest point, over the stretch before the grasp in which it stayed
   above the object (within 5 cm horizontally); *grasp* from the closing onset
-  after the last fully open step before the lift; *lift* from the object's
-  onset 2 cm up; *transport to bin k* from its onset 3 cm away horizontally
-  from where it was lifted; *lower* from its onset 2 cm down since; *release*
-  from the fingers' opening onset; *retreat* from the grip site's onset 3 cm
-  away from where the release began.
-  The target compartment k is the one the object ends in; an object in none
-  gets robosuite's own compartment for it (cereal 2, can 3) and
-  ``success: false``.
+  after the last fully open step before the lift (no lift: the first closing
+  onset); *lift* from the object's onset 2 cm up; *transport to bin k* from
+  its onset 3 cm away horizontally from where it was lifted; *lower* from its
+  onset 2 cm down since; *release* from the fingers' opening onset (the
+  fingers move once the gripper's target has passed the object, a few steps
+  after the command); *retreat* from the grip site's onset 3 cm away from
+  where the release began. The target compartment k is the one the object
+  ends in; an object in none gets robosuite's own compartment for it (cereal
+  2, can 3) and ``success: false``.
 * lift (``scenes.LIFT_PHASES``): as pick_place without transport and lower.
 
 A phase whose onset is not found, or not after the previous one, is left out
@@ -472,14 +474,16 @@ def onset(x: np.ndarray, start: int | None, rise: float) -> int | None:
 
 
 def closing_onset(opening: np.ndarray, before: int | None) -> int | None:
-    """The gripper's closing onset after its last fully open step before ``before`` (None: the episode's end)."""
-    end = len(opening) if before is None else before
-    if end <= 0:
+    """The gripper's closing onset after its last fully open step before ``before`` (the closing that led to
+    what happened there), or with ``before`` None (nothing happened) its first closing onset."""
+    if before is None:
+        return onset(-opening, 0, GRIP_CHANGE_M)
+    if before <= 0:
         return None
-    top = float(np.max(opening[:end]))
-    s0 = int(np.nonzero(opening[:end] >= top - GRIP_OPEN_TOL_M)[0][-1])
+    top = float(np.max(opening[:before]))
+    s0 = int(np.nonzero(opening[:before] >= top - GRIP_OPEN_TOL_M)[0][-1])
     c = onset(-opening, s0, GRIP_CHANGE_M)
-    return c if c is not None and c < end else None
+    return c if c is not None and c < before else None
 
 
 def descent_start(grip: np.ndarray, obj: np.ndarray, grasp: int | None) -> int | None:
