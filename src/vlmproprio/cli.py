@@ -20,6 +20,7 @@ EPILOG = """\
 typical use:
   vlmproprio verify                          check the shipped fixtures against their manifest
   vlmproprio run --model reference           caption all 22 episodes under every condition
+  vlmproprio import-demos demo.hdf5 --out my_fixtures    your own robosuite demos as episodes
   vlmproprio report runs/reference           tables, plots and an HTML page for a run
   pytest benchmark/ --model tiny-qwen2-vl    the benchmark with its regression gates
 """
@@ -47,6 +48,26 @@ def cmd_record(args: argparse.Namespace) -> int:
     from vlmproprio.record.recorder import record_all
 
     record_all(args.fixtures, episode_ids=args.episodes, contact_sheets=args.contact_sheets)
+    return 0
+
+
+def cmd_import_demos(args: argparse.Namespace) -> int:
+    from vlmproprio.record.demos import import_demos
+
+    results = import_demos(
+        args.file,
+        args.out,
+        args.task,
+        camera=args.camera,
+        demos=args.demos,
+        replay_mode=args.replay,
+        prefix=args.prefix,
+        progress=not args.no_progress,
+    )
+    for r in results:
+        print(f"{r['episode_id']}: {r['demo']}, {r['steps']} steps, {r['frames']} frames, {r['replay']} replay")
+    wall = sum(r["wall_s"] for r in results)
+    print(f"imported {len(results)} demos into {args.out} in {wall:.1f} s ({wall / len(results):.1f} s per demo)")
     return 0
 
 
@@ -258,6 +279,30 @@ def build_parser() -> argparse.ArgumentParser:
         help="folder for one contact sheet per episode (default: runs/contact_sheets)",
     )
     p.set_defaults(func=cmd_record)
+
+    p = sub.add_parser(
+        "import-demos",
+        help="import robosuite / robomimic demo.hdf5 demonstrations as episodes (needs the [record] extra)",
+        description="Replay each demonstration of a robosuite or robomimic demo.hdf5 in its robosuite env, "
+        "render a frame every 20 steps as the recorder does, derive states and ground truth, and write episodes "
+        "and the manifest into --out (usable as `vlmproprio run --fixtures OUT`). Tasks: door, "
+        "pick_place_cereal, pick_place_can, lift.",
+    )
+    p.add_argument("file", type=Path, metavar="FILE.hdf5", help="robosuite or robomimic demo file")
+    p.add_argument("--task", help="door | pick_place_cereal | pick_place_can | lift (default: from the file's env)")
+    p.add_argument("--out", type=Path, required=True, help="fixture folder to write episodes/ and manifest.json into")
+    p.add_argument("--camera", help="camera to render (default: the task's, e.g. vlmproprio_bins for pick-place)")
+    p.add_argument("--demos", nargs="+", metavar="NAME", help="only these demos, e.g. demo_1 demo_3 (default: all)")
+    p.add_argument(
+        "--replay",
+        choices=("auto", "actions", "states"),
+        default="auto",
+        help="actions: re-simulate the recorded actions, checked bit for bit against the recorded states; states: "
+        "set the recorded states; auto: actions when they reproduce every state, else states (default)",
+    )
+    p.add_argument("--prefix", help="episode id prefix (default: imp_<task>, giving ids like imp_door_01)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_import_demos)
 
     p = sub.add_parser(
         "make-tiny-model",

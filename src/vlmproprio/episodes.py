@@ -39,7 +39,7 @@ import numpy as np
 from vlmproprio.errors import VlmproprioError
 
 FORMAT_VERSION = 1
-TASKS = ("door", "pick_place")
+TASKS = ("door", "pick_place", "lift")
 JOINT_DIM = 8
 EE_DIM = 6
 MANIFEST_NAME = "manifest.json"

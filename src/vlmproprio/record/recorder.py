@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +19,7 @@ import numpy as np
 from vlmproprio.episodes import (
     PhaseSpan,
     StepStates,
+    TargetBin,
     episode_metadata,
     pixel_sha256,
     standard_episode_ids,
@@ -61,7 +62,7 @@ def episode_spec(episode_id: str) -> EpisodeSpec:
     raise RecordingError(f"cannot record {episode_id!r}: ids look like door_07 or bin2_01 (bin index 0-3)")
 
 
-def _prepare_robosuite() -> None:
+def prepare_robosuite() -> None:
     """Headless rendering, and robosuite's per-env INFO lines kept off the progress bar."""
     import logging
 
@@ -73,7 +74,7 @@ def _prepare_robosuite() -> None:
     logging.getLogger("robosuite_logs").setLevel(logging.WARNING)
 
 
-def _versions() -> dict[str, str]:
+def versions() -> dict[str, str]:
     import mujoco
     import robosuite
 
@@ -115,87 +116,98 @@ def _phase_spans(phases: Sequence[str]) -> list[PhaseSpan]:
     return spans
 
 
-def record_episode(spec: EpisodeSpec, out_root: Path | None = None) -> dict:
-    """Run one episode; write it under ``out_root/episodes/`` when given. Returns a summary dict.
+# ---------------------------------------------------------------------------------------------- trace
 
-    Raises RecordingError when the operator does not really succeed (the fixture set must not contain a
-    failed demonstration)."""
-    _prepare_robosuite()
-    from vlmproprio.record import operators
 
-    t0 = time.perf_counter()
-    env = scenes.make_env(spec.task, spec.seed, HORIZON)
-    try:
-        rng = np.random.default_rng(spec.seed)
-        hand = operators.Hand(env, operators.Style.sample(rng), rng)
-        if spec.task.task == "door":
-            policy = operators.door_operator(env, hand)
-            phase_names = scenes.DOOR_PHASES
-        else:
-            policy = operators.pick_place_operator(env, hand, spec.bin_index)
-            phase_names = scenes.bin_phases(spec.bin_index)
-        obs = env._get_observations(force_update=True)
-        joints, pos, quats, phases, images, frame_steps, obj_track = [], [], [], [], [], [], []
+@dataclass
+class Trace:
+    """What a recording sees of one episode: a state row per sim step, a frame on sampled steps, and per-step
+    simulator signals (object position, door angles...) for the ground truth."""
 
-        def observe(phase: str) -> None:
-            j, p, q = _state_row(obs)
-            joints.append(j)
-            pos.append(p)
-            quats.append(q)
-            phases.append(phase)
-            if spec.task.task == "pick_place":
-                obj_track.append(scenes.object_pos(env))
+    joints: list[np.ndarray] = field(default_factory=list)
+    pos: list[np.ndarray] = field(default_factory=list)
+    quats: list[np.ndarray] = field(default_factory=list)
+    signals: list[dict[str, np.ndarray | float]] = field(default_factory=list)
+    images: list[np.ndarray] = field(default_factory=list)
+    frame_steps: list[int] = field(default_factory=list)
 
-        for phase, action in policy:
-            step = len(phases)
-            observe(phase)
-            if step % scenes.STEP_STRIDE == 0:
-                images.append(scenes.render(env, spec.task.camera))
-                frame_steps.append(step)
-            obs, _, _, _ = env.step(action)
-            if step + 1 >= HORIZON:
-                raise RecordingError(f"{spec.episode_id}: operator still busy after {HORIZON} steps")
-        # Rest until the next sampled step so that the last frame shows the finished task.
-        last = phases[-1]
-        while True:
-            step = len(phases)
-            observe(last)
-            if step % scenes.STEP_STRIDE == 0:
-                images.append(scenes.render(env, spec.task.camera))
-                frame_steps.append(step)
-                break
-            obs, _, _, _ = env.step(np.zeros(7) + np.array([0, 0, 0, 0, 0, 0, operators.OPEN]))
-        if spec.task.task == "door":
-            success = scenes.door_success(env)
-            extra = {"door_hinge_rad": round(scenes.door_hinge(env), 4)}
-        else:
-            moved = float(np.linalg.norm(obj_track[-1] - obj_track[-scenes.STEP_STRIDE - 1]))
-            success = scenes.bin_success(env, spec.bin_index, moved)
-            extra = {
-                "object_pos": [round(float(v), 4) for v in scenes.object_pos(env)],
-                "in_compartments": [scenes.in_compartment(env, k) for k in range(4)],
-            }
-    finally:
-        env.close()
-    if not success:
-        raise RecordingError(f"{spec.episode_id} (seed {spec.seed}): the operator did not complete the task ({extra})")
-    for i, img in enumerate(images):
+    def __len__(self) -> int:
+        return len(self.joints)
+
+    def signal(self, name: str) -> np.ndarray:
+        return np.array([s[name] for s in self.signals])
+
+
+class Tracer:
+    """Builds a Trace from a robosuite env, the one way both the recorder and the demo importer observe a step.
+
+    A row is robosuite's observation as ``env.step`` returns it. robosuite samples observables on a clock
+    that ``reset()`` restarts and every forced update advances by one physics substep; with the one forced
+    update of ``start()`` after a reset, ``env.step`` reports the joints after the 24th of its 25 substeps
+    and the end-effector pose computed before that substep. ``start()`` must therefore be the only forced
+    update between the env's last reset and its first step, as it always was for the recorder."""
+
+    def __init__(self, env, camera: str, signals: Callable[[object], dict] | None = None):
+        self.env, self.camera, self._signals = env, camera, signals
+        self.trace = Trace()
+        self.obs: dict | None = None
+
+    def start(self) -> None:
+        self.obs = self.env._get_observations(force_update=True)
+
+    def observe(self, obs: dict | None = None, frame: bool = False) -> bool:
+        """Append the current step's row (from ``obs`` when given, else the last observation); render a frame
+        on every STEP_STRIDE-th step, or when ``frame``. Returns whether a frame was rendered."""
+        tr = self.trace
+        step = len(tr)
+        j, p, q = _state_row(self.obs if obs is None else obs)
+        tr.joints.append(j)
+        tr.pos.append(p)
+        tr.quats.append(q)
+        if self._signals is not None:
+            tr.signals.append(self._signals(self.env))
+        if step % scenes.STEP_STRIDE == 0 or frame:
+            tr.images.append(scenes.render(self.env, self.camera))
+            tr.frame_steps.append(step)
+            return True
+        return False
+
+    def step(self, action: np.ndarray) -> None:
+        self.obs, _, _, _ = self.env.step(action)
+
+
+def build_episode(
+    trace: Trace,
+    phases: Sequence[str],
+    phase_names: Sequence[str],
+    *,
+    episode_id: str,
+    task: scenes.TaskInfo,
+    instruction: str,
+    target_bin: TargetBin | None,
+    seed: int,
+    success: bool,
+    extra: dict,
+    camera: str | None = None,
+) -> tuple[dict, StepStates]:
+    """Episode metadata and full-rate states from a trace and its per-step phase names (the one path from a
+    trace to an episode, shared by the recorder and the demo importer)."""
+    for i, img in enumerate(trace.images):
         if img.std() < 1.0:
-            raise RecordingError(f"{spec.episode_id}: frame {i} is blank (offscreen rendering failed?)")
-
-    joints_a = np.array(joints)
-    ee_a = np.concatenate([np.array(pos), _rpy(np.array(quats))], axis=1)
+            raise RecordingError(f"{episode_id}: frame {i} is blank (offscreen rendering failed?)")
+    joints_a = np.array(trace.joints)
+    ee_a = np.concatenate([np.array(trace.pos), _rpy(np.array(trace.quats))], axis=1)
     directions = _directions(ee_a[:, :3])
     direction_vocab = sorted(set(directions))
     steps = len(phases) - 1
     frame_rows = []
-    for i, s in enumerate(frame_steps):
+    for i, s in enumerate(trace.frame_steps):
         frame_rows.append(
             {
                 "index": i,
                 "step": s,
                 "file": f"frames/{i:03d}.png",
-                "pixel_sha256": pixel_sha256(images[i]),
+                "pixel_sha256": pixel_sha256(trace.images[i]),
                 "joints": joints_a[s].tolist(),
                 "ee": ee_a[s].tolist(),
                 "phase": phases[s],
@@ -206,25 +218,23 @@ def record_episode(spec: EpisodeSpec, out_root: Path | None = None) -> dict:
         step=np.arange(len(phases), dtype=np.int32),
         joints=joints_a,
         ee=ee_a,
-        phase=np.array([phase_names.index(p) for p in phases], dtype=np.int16),
+        phase=np.array([list(phase_names).index(p) for p in phases], dtype=np.int16),
         direction=np.array([direction_vocab.index(d) for d in directions], dtype=np.int16),
     )
-    wall = time.perf_counter() - t0
-    target = scenes.target_bin(spec.bin_index) if spec.bin_index is not None else None
     meta = episode_metadata(
-        episode_id=spec.episode_id,
-        task=spec.task.task,
-        env_name=spec.task.env_name,
-        target_object=spec.task.target_object,
-        action=spec.task.action,
-        instruction=scenes.instruction(spec.task, spec.bin_index),
-        target_bin=target,
-        seed=spec.seed,
+        episode_id=episode_id,
+        task=task.task,
+        env_name=task.env_name,
+        target_object=task.target_object,
+        action=task.action,
+        instruction=instruction,
+        target_bin=target_bin,
+        seed=seed,
         steps=steps,
         stride=scenes.STEP_STRIDE,
-        camera=spec.task.camera,
+        camera=camera or task.camera,
         image_size=(scenes.IMAGE_SIZE, scenes.IMAGE_SIZE),
-        versions=_versions(),
+        versions=versions(),
         success=success,
         phase_names=phase_names,
         direction_vocab=direction_vocab,
@@ -232,15 +242,126 @@ def record_episode(spec: EpisodeSpec, out_root: Path | None = None) -> dict:
         frame_rows=frame_rows,
         extra=extra,
     )
+    return meta, states
+
+
+# ---------------------------------------------------------------------------------------------- record
+
+
+def _object_signal(env) -> dict:
+    return {"object": scenes.object_pos(env)}
+
+
+@dataclass
+class PolicyRun:
+    trace: Trace
+    phases: list[str]  # per step
+    actions: list[np.ndarray]  # per step but the last
+    cut: bool  # stopped by max_steps before the policy finished
+
+
+def run_policy(
+    env,
+    policy: Iterable[tuple[str, np.ndarray]],
+    camera: str,
+    signals: Callable[[object], dict] | None = None,
+    max_steps: int | None = None,
+    episode_id: str = "",
+) -> PolicyRun:
+    """Drive a freshly reset env with a policy of (phase, action) pairs and trace it, then rest with the gripper
+    open until the next sampled step so that the last frame shows the finished task. ``max_steps`` cuts the
+    policy short (tests)."""
+    from vlmproprio.record.operators import OPEN
+
+    tracer = Tracer(env, camera, signals)
+    tracer.start()
+    phases: list[str] = []
+    actions: list[np.ndarray] = []
+    cut = False
+    for phase, action in policy:
+        step = len(phases)
+        tracer.observe()
+        phases.append(phase)
+        tracer.step(action)
+        actions.append(action)
+        if step + 1 >= HORIZON:
+            raise RecordingError(f"{episode_id}: operator still busy after {HORIZON} steps")
+        if max_steps is not None and step + 1 >= max_steps:
+            cut = True
+            break
+    last = phases[-1]
+    rest = np.zeros(7) + np.array([0, 0, 0, 0, 0, 0, OPEN])
+    while True:
+        phases.append(last)
+        if tracer.observe():
+            break
+        tracer.step(rest)
+        actions.append(rest)
+    return PolicyRun(tracer.trace, phases, actions, cut)
+
+
+def operator_policy(env, spec: EpisodeSpec) -> tuple[Iterable[tuple[str, np.ndarray]], tuple[str, ...]]:
+    """The scripted operator of an episode (seeded by its spec) and its phase names."""
+    from vlmproprio.record import operators
+
+    rng = np.random.default_rng(spec.seed)
+    hand = operators.Hand(env, operators.Style.sample(rng), rng)
+    if spec.task.task == "door":
+        return operators.door_operator(env, hand), scenes.DOOR_PHASES
+    return operators.pick_place_operator(env, hand, spec.bin_index), scenes.bin_phases(spec.bin_index)
+
+
+def record_episode(spec: EpisodeSpec, out_root: Path | None = None) -> dict:
+    """Run one episode; write it under ``out_root/episodes/`` when given. Returns a summary dict.
+
+    Raises RecordingError when the operator does not really succeed (the fixture set must not contain a
+    failed demonstration)."""
+    prepare_robosuite()
+    t0 = time.perf_counter()
+    env = scenes.make_env(spec.task, spec.seed, HORIZON)
+    try:
+        policy, phase_names = operator_policy(env, spec)
+        signals = _object_signal if spec.task.task == "pick_place" else None
+        run = run_policy(env, policy, spec.task.camera, signals, episode_id=spec.episode_id)
+        trace = run.trace
+        if spec.task.task == "door":
+            success = scenes.door_success(env)
+            extra = {"door_hinge_rad": round(scenes.door_hinge(env), 4)}
+        else:
+            obj_track = trace.signal("object")
+            moved = float(np.linalg.norm(obj_track[-1] - obj_track[-scenes.STEP_STRIDE - 1]))
+            success = scenes.bin_success(env, spec.bin_index, moved)
+            extra = {
+                "object_pos": [round(float(v), 4) for v in scenes.object_pos(env)],
+                "in_compartments": [scenes.in_compartment(env, k) for k in range(4)],
+            }
+    finally:
+        env.close()
+    if not success:
+        raise RecordingError(f"{spec.episode_id} (seed {spec.seed}): the operator did not complete the task ({extra})")
+
+    wall = time.perf_counter() - t0
+    meta, states = build_episode(
+        trace,
+        run.phases,
+        phase_names,
+        episode_id=spec.episode_id,
+        task=spec.task,
+        instruction=scenes.instruction(spec.task, spec.bin_index),
+        target_bin=scenes.target_bin(spec.bin_index) if spec.bin_index is not None else None,
+        seed=spec.seed,
+        success=success,
+        extra=extra,
+    )
     if out_root is not None:
-        write_episode(Path(out_root), meta, images, states)
+        write_episode(Path(out_root), meta, trace.images, states)
     return {
         "episode_id": spec.episode_id,
-        "steps": steps,
-        "frames": len(images),
+        "steps": meta["steps"],
+        "frames": len(trace.images),
         "wall_s": wall,
         "meta": meta,
-        "images": images,
+        "images": trace.images,
     }
 
 

@@ -1,4 +1,7 @@
-"""The two robosuite tasks of the paper as the recorder sets them up: environment, camera, success.
+"""The robosuite tasks as the recorder and the demo importer set them up: environment, camera, success.
+
+The recorder records the paper's two tasks (Door, PickPlaceCereal); the demo importer
+(``vlmproprio.record.demos``) also brings in PickPlaceCan and Lift demonstrations.
 
 Cameras (chosen by eye from contact sheets, see docs/fixtures.md):
 
@@ -16,6 +19,11 @@ The translucent "ghost" objects robosuite draws in the target bin (``Visual*``
 bodies, one per object type, with the cereal ghost in compartment 2 in every
 episode) are made fully transparent before any frame is rendered: a captioner
 must not see a box in compartment 2 when the real one goes elsewhere.
+
+* PickPlaceCan: the same arena and bin camera as PickPlaceCereal (the camera is
+  injected into an imported demo's model XML, see ``with_bin_camera``).
+* Lift: robosuite's ``sideview`` shows the arm and the cube in profile, so the
+  lift is a vertical motion in the image.
 """
 
 from __future__ import annotations
@@ -32,6 +40,7 @@ IMAGE_SIZE = 256
 CONTROL_FREQ = 20
 BIN_CAMERA = "vlmproprio_bins"
 DOOR_CAMERA = "sideview"
+LIFT_CAMERA = "sideview"
 # Placed by eye: above and behind the robot base (x=-0.56), looking down at the middle between the bins.
 BIN_CAMERA_POS = (-0.25, 0.02, 2.38)
 BIN_CAMERA_TARGET = (0.1, 0.02, 0.8)
@@ -42,6 +51,9 @@ BIN_CAMERA_FOVY = 45.0
 COMPARTMENT_WORDS = {0: ("near", "right"), 1: ("far", "right"), 2: ("near", "left"), 3: ("far", "left")}
 
 DOOR_PHASES = ("approach", "grasp handle", "turn handle down", "pull door open", "release and retreat")
+
+
+LIFT_PHASES = ("approach", "descend", "grasp", "lift", "release", "retreat")
 
 
 def bin_phases(index: int) -> tuple[str, ...]:
@@ -61,6 +73,9 @@ class TaskInfo:
 
 DOOR = TaskInfo("door", "Door", DOOR_CAMERA, "door handle", "open the door")
 PICK_PLACE = TaskInfo("pick_place", "PickPlaceCereal", BIN_CAMERA, "cereal box", "pick and place")
+# Only imported (no scripted operator): see vlmproprio.record.demos.
+PICK_PLACE_CAN = TaskInfo("pick_place", "PickPlaceCan", BIN_CAMERA, "can", "pick and place")
+LIFT = TaskInfo("lift", "Lift", LIFT_CAMERA, "cube", "lift")
 
 
 def target_bin(index: int) -> TargetBin:
@@ -81,8 +96,13 @@ def instruction(task: TaskInfo, bin_index: int | None = None) -> str:
     """The instruction a correct final caption should amount to (for people reading reports)."""
     if task.task == "door":
         return "Grasp the door handle, turn it down, and pull the door open toward the robot."
+    if task.task == "lift":
+        return f"Grasp the {task.target_object} on the table and lift it up."
     tb = target_bin(bin_index)
-    return f"Pick up the cereal box from the source bin and place it in the {tb.row}-{tb.side} compartment of the target bin."
+    return (
+        f"Pick up the {task.target_object} from the source bin and place it in the {tb.row}-{tb.side} compartment "
+        "of the target bin."
+    )
 
 
 def lookat_quat_wxyz(pos, target) -> np.ndarray:
@@ -111,6 +131,22 @@ def bin_camera_element():
     )
 
 
+def with_bin_camera(xml: str) -> str:
+    """A model XML with our bin camera at the end of its worldbody (unchanged when it already has it).
+
+    Only text is added: every other attribute keeps its exact string, so the compiled physics is unchanged."""
+    import xml.etree.ElementTree as ET
+
+    root = ET.fromstring(xml)
+    if any(cam.get("name") == BIN_CAMERA for cam in root.iter("camera")):
+        return xml
+    worldbody = root.find("worldbody")
+    if worldbody is None:
+        raise ValueError("model XML has no <worldbody>")
+    worldbody.append(bin_camera_element())
+    return ET.tostring(root, encoding="unicode")
+
+
 @cache
 def _pick_place_class():
     """PickPlaceCereal with our bin camera added to the arena (a subclass, so hard resets keep it)."""
@@ -125,11 +161,9 @@ def _pick_place_class():
     return PickPlaceCerealBinCamera
 
 
-def make_env(task: TaskInfo, seed: int, horizon: int):
-    """A fresh robosuite env for one episode (a new env per episode keeps episodes independent)."""
-    import robosuite as suite
-
-    kwargs = dict(
+def env_kwargs(seed: int, horizon: int) -> dict:
+    """robosuite constructor arguments of every env the recorder and the importer make."""
+    return dict(
         robots="Panda",
         has_renderer=False,
         has_offscreen_renderer=True,
@@ -140,6 +174,13 @@ def make_env(task: TaskInfo, seed: int, horizon: int):
         hard_reset=False,
         seed=seed,
     )
+
+
+def make_env(task: TaskInfo, seed: int, horizon: int):
+    """A fresh robosuite env for one episode (a new env per episode keeps episodes independent)."""
+    import robosuite as suite
+
+    kwargs = env_kwargs(seed, horizon)
     env = suite.make("Door", **kwargs) if task.task == "door" else _pick_place_class()(**kwargs)
     env.reset()
     hide_ghosts(env)
@@ -170,13 +211,29 @@ def door_hinge(env) -> float:
     return float(env.sim.data.qpos[env.sim.model.get_joint_qpos_addr("Door_hinge")])
 
 
+def door_latch(env) -> float:
+    """The lever's turn (rad, positive = down); 0 when the door has no latch (robosuite's ``use_latch=False``)."""
+    m = env.sim.model
+    if "Door_latch_joint" not in m.joint_names:
+        return 0.0
+    return float(env.sim.data.qpos[m.get_joint_qpos_addr("Door_latch_joint")])
+
+
 def door_success(env) -> bool:
     return bool(env._check_success())  # hinge opened past robosuite's success angle (0.3 rad)
 
 
 def object_pos(env) -> np.ndarray:
+    """World position of the task's object: PickPlace's chosen object, or Lift's cube."""
+    if hasattr(env, "cube_body_id"):
+        return env.sim.data.body_xpos[env.cube_body_id].copy()
     obj = env.objects[env.object_id]
     return env.sim.data.body_xpos[env.obj_body_id[obj.name]].copy()
+
+
+def grip_pos(env) -> np.ndarray:
+    """World position of the grip site (the point between the fingertips)."""
+    return env.sim.data.site_xpos[env.robots[0].eef_site_id["right"]].copy()
 
 
 def in_compartment(env, index: int) -> bool:
