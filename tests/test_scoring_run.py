@@ -168,14 +168,15 @@ def test_scores_are_bit_identical_across_runs_and_processes(tables, small_run):
     assert _score_files(run) == first
 
 
-def test_a_cached_run_imports_no_torch(tmp_path):
+def test_a_cached_run_imports_no_torch(tmp_path, monkeypatch):
     """The default encoder's spec (name, revision) and the whole scoring path, with torch never imported."""
     run, fx = tmp_path / "run", tmp_path / "fx"
     write_synthetic_run(run, fx, n_door=1, n_per_bin=1, n_frames=10, conditions=("none", "both"))
     code = "from vlmproprio.embeddings import encoder_spec; print(encoder_spec().key)"
     env = {**os.environ, "PYTHONPATH": str(SRC)}
     key = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
-    prefill_embeddings(run, key.stdout.strip())
+    monkeypatch.setenv("VLMPROPRIO_CACHE", str(tmp_path / "cache"))  # the subprocess inherits it
+    prefill_embeddings(run, key.stdout.strip(), tmp_path / "cache" / "embeddings")
     assert _run_scoring_subprocess(run, fake=False) == {"heavy": [], "computed": 0}
 
 
