@@ -154,6 +154,7 @@ class BackendSettings:
     attn_implementation: str = "sdpa"  # hf: eager | sdpa | flash_attention_2 | ...
     max_batch_size: int = 8  # hf: requests per generate() call
     threads: int | None = None  # hf: torch threads (pin to 1 for bit-identical CPU runs)
+    static_cache: bool = False  # hf: static KV cache per batch, decode step compiled on a GPU (not in the cache key)
     base_url: str | None = None  # openai: server URL, e.g. http://127.0.0.1:8000/v1 for vLLM
     api_key_env: str = "OPENAI_API_KEY"  # openai: the environment variable holding the key
     concurrency: int = 4  # openai: requests in flight
@@ -204,6 +205,7 @@ def create_backend(name: str, mode: str = "live", settings: BackendSettings | No
             attn_implementation=settings.attn_implementation,
             max_batch_size=settings.max_batch_size,
             threads=settings.threads,
+            static_cache=settings.static_cache,
         )
     from vlmproprio.backends.openai import OpenAIBackend
 
