@@ -88,6 +88,17 @@ def test_static_cache_gives_the_same_answers(make_backend, request_factory, png_
         assert extra["cache_len"] % 64 == 0 and extra["cache_len"] >= extra["padded_prompt_tokens"] + 12
 
 
+def test_a_static_cache_is_reused_for_the_next_batch_of_its_shape(make_backend, request_factory, png_factory):
+    reqs = mixed_shapes(request_factory, png_factory, n=3, new=12)
+    backend = make_backend(max_batch_size=3, static_cache=True)
+    first = backend.generate(reqs)
+    cache = backend._static[1]
+    assert [a.text for a in backend.generate(reqs)] == [a.text for a in first]  # reset between uses
+    assert backend._static[1] is cache
+    backend.generate(reqs[:2])  # another batch size: another cache, the old one let go
+    assert backend._static[1] is not cache and backend._static[0][0] == 2
+
+
 @pytest.mark.slow
 def test_compiled_decode_step_runs_on_cpu(make_backend, request_factory, png_factory):
     """torch.compile of the decode step, forced on a CPU (transformers compiles on GPUs only); ~30 s."""

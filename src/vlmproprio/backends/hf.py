@@ -235,6 +235,9 @@ class HFBackend(Backend):
         self.compile_decode = compile_decode
         self.cache_bucket = cache_bucket
         self._image_tokens: dict[str, int] = {}  # image sha256 -> tokens it becomes (for the scheduler)
+        # the last static cache, kept for the next batch of the same shape: a compiled decode step replays its
+        # CUDA graph only while the cache tensors stay at the same addresses
+        self._static: tuple[tuple[int, int], object] | None = None
         self.model = None
         self.processor = None
         self.processor_via = ""
@@ -282,6 +285,7 @@ class HFBackend(Backend):
     def close(self) -> None:
         self.model = None
         self.processor = None
+        self._static = None
 
     @property
     def placement(self) -> str:
@@ -348,15 +352,21 @@ class HFBackend(Backend):
             return False
         return bool(self.compile_decode) or self.model.device.type == "cuda"
 
-    def _cache_kwargs(self, prompt_len: int, max_new_tokens: int) -> tuple[dict, dict]:
+    def _cache_kwargs(self, rows: int, prompt_len: int, max_new_tokens: int) -> tuple[dict, dict]:
         """generate() arguments for the KV cache, and what to record about it."""
         if not self.static_cache:
             return {}, {"kv_cache": "dynamic"}
         from transformers import CompileConfig, StaticCache
 
         length = round_up(prompt_len + max_new_tokens, self.cache_bucket)
-        config = self.model.config.get_text_config(decoder=True)
-        kwargs: dict = {"cache": StaticCache(config=config, max_cache_len=length)}
+        if self._static is not None and self._static[0] == (rows, length):
+            cache = self._static[1]
+            cache.reset()
+        else:
+            self._static = None  # free the old one first: at large batches a cache is gigabytes
+            cache = StaticCache(config=self.model.config.get_text_config(decoder=True), max_cache_len=length)
+            self._static = ((rows, length), cache)
+        kwargs: dict = {"cache": cache}
         if not self._compiles_decode():
             kwargs["disable_compile"] = True
         elif self.model.device.type != "cuda":
@@ -384,9 +394,9 @@ class HFBackend(Backend):
         gen = dict(max_new_tokens=cfg.max_new_tokens, **PURE_GREEDY)
         if cfg.min_new_tokens:
             gen["min_new_tokens"] = cfg.min_new_tokens
-        cache_kwargs, cache_meta = self._cache_kwargs(prompt_len, cfg.max_new_tokens)
         t0 = time.perf_counter()
-        with torch.inference_mode():
+        with torch.inference_mode():  # a kept static cache holds inference tensors: reset it in here too
+            cache_kwargs, cache_meta = self._cache_kwargs(len(requests), prompt_len, cfg.max_new_tokens)
             seq = self.model.generate(**inputs, **gen, **cache_kwargs)
         if target.type == "cuda":
             torch.cuda.synchronize(target)
