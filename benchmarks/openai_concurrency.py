@@ -7,7 +7,8 @@ The server is the suite's loopback FakeOpenAIServer (a real HTTP server on
 per request. The requests are real Process 1 requests made by the pipeline
 (up to 5 PNG frames each, sent base64-encoded), answered through the suite's
 own path: ``CachedBackend`` (live, no cache) -> ``OpenAIBackend``. With the
-latency dominating, N requests at concurrency c should take about N * latency / c.
+latency dominating, N requests at concurrency c should take about N * latency / c
+(at least ceil(N / c) whole rounds of one latency each).
 """
 
 from __future__ import annotations
@@ -88,23 +89,24 @@ def main(argv=None) -> int:
                 backend.close()
             assert len(answers) == len(requests) and all(a.text.startswith("echo ") for a in answers)
             ideal = sent * args.latency / c
+            rounds = -(-sent // c) * args.latency  # whole rounds of c requests: the least it can take
             row = {
                 "concurrency": c,
                 "requests": sent,
                 "wall_s": wall,
                 "ideal_s": ideal,
                 "wall_over_ideal": wall / ideal,
-                "req_per_s": len(requests) / wall,
+                "whole_rounds_s": rounds,
+                "req_per_s": sent / wall,
                 "max_in_flight": server.max_in_flight,
             }
             rows.append(row)
             emit({"what": "concurrency", **row})
     print()
     what = "text only" if args.text_only else f"{body_mb:.1f} MB of base64 images"
-    print(f"{len(requests)} Process 1 requests ({what}), server latency {args.latency} s")
-    print(
-        table(rows, ["concurrency", "requests", "wall_s", "ideal_s", "wall_over_ideal", "req_per_s", "max_in_flight"])
-    )
+    print(f"{len(requests)} Process 1 requests ({what}; equal ones are sent once), server latency {args.latency} s")
+    cols = ["concurrency", "requests", "wall_s", "ideal_s", "wall_over_ideal", "whole_rounds_s", "req_per_s"]
+    print(table(rows, [*cols, "max_in_flight"]))
     write_json(args.out, {"machine": info, "rows": rows})
     return 0
 

@@ -126,10 +126,30 @@ def test_static_cache_setting_reaches_the_backend(vlmproprio_home, torch_one_thr
     backend = create_backend("tiny-qwen2-vl", "live", BackendSettings(static_cache=True, max_batch_size=32))
     assert (backend.static_cache, backend.compile_decode, backend.max_batch_size) == (True, None, 32)
     assert create_backend("tiny-qwen2-vl", "live").static_cache is False
+    args = build_parser().parse_args(["run", "--model", "tiny-qwen2-vl", "--batch-tokens", "4096"])
+    assert args.batch_tokens == 4096
+    backend = create_backend("tiny-qwen2-vl", "live", BackendSettings(max_batch_tokens=4096))
+    assert backend.max_batch_tokens == 4096
     with pytest.raises(BackendError, match="needs the static KV cache"):
         make_backend(compile_decode=True)
     with pytest.raises(BackendError, match="cache_bucket"):
         make_backend(static_cache=True, cache_bucket=0)
+    with pytest.raises(BackendError, match="max_batch_tokens"):
+        make_backend(max_batch_tokens=0)
+
+
+def test_a_cpu_batch_is_capped_in_tokens(make_backend, request_factory, png_factory):
+    from vlmproprio.backends.hf import CPU_BATCH_TOKENS
+
+    reqs = mixed_shapes(request_factory, png_factory, n=6)
+    assert make_backend().max_batch_tokens == CPU_BATCH_TOKENS  # the default on a CPU
+    shapes = make_backend().request_shapes(reqs)
+    budget = max(s.prompt_tokens for s in shapes) + 1  # room for one row of the longest prompt, not two
+    backend = make_backend(max_batch_size=6, max_batch_tokens=budget)
+    plan = backend.plan_batches(reqs)
+    assert all(len(b) * max(shapes[i].prompt_tokens for i in b) <= budget or len(b) == 1 for b in plan)
+    assert len(plan[0]) == 1 and len(plan) > 1
+    assert [a.text for a in backend.generate(reqs)] == [a.text for a in make_backend(max_batch_size=1).generate(reqs)]
 
 
 def test_identity_ignores_how_answers_are_computed(make_backend):

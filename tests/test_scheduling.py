@@ -13,6 +13,7 @@ from vlmproprio.backends.scheduling import (
     padding_stats,
     plan_batches,
     round_up,
+    rows_allowed,
 )
 from vlmproprio.pipeline import answer_chunk
 
@@ -72,21 +73,37 @@ def test_ties_keep_request_order_so_a_plan_is_reproducible():
     assert plan_batches(shapes, 4) == batches
 
 
+def test_a_token_budget_gives_long_prompts_smaller_batches():
+    long = [RequestShape(GREEDY, 9000, 30)] * 3  # Process 3 sized
+    short = [RequestShape(GREEDY, 2000, 5)] * 10
+    batches = plan_batches(short + long, 8, max_batch_tokens=16384)
+    assert [(len(b), b.padded_tokens) for b in batches] == [(1, 9000), (1, 9000), (1, 9000), (8, 2000), (2, 2000)]
+    assert all(len(b) * b.padded_tokens <= 16384 for b in batches)
+    huge = plan_batches([RequestShape(GREEDY, 50_000, 1)] * 2, 8, max_batch_tokens=16384)
+    assert [len(b) for b in huge] == [1, 1]  # longer than the cap: alone, never dropped
+    assert [len(b) for b in plan_batches(short + long, 8)] == [8, 5]  # no cap: rows only
+
+
 @settings(max_examples=200, deadline=None)
 @given(
     st.lists(st.tuples(st.sampled_from(["a", "b"]), st.integers(1, 3000), st.integers(0, 6)), min_size=0, max_size=60),
     st.integers(1, 16),
+    st.one_of(st.none(), st.integers(1, 20000)),
 )
-def test_plan_is_a_partition_into_sorted_runs(raw, size):
+def test_plan_is_a_partition_into_sorted_runs(raw, size, budget):
     shapes = [RequestShape(s, n, k) for s, n, k in raw]
-    batches = plan_batches(shapes, size)
+    batches = plan_batches(shapes, size, budget)
     assert sorted(i for b in batches for i in b) == list(range(len(shapes)))
     assert all(1 <= len(b) <= size for b in batches)
+    assert all(b.padded_tokens == max(shapes[i].prompt_tokens for i in b) for b in batches)
+    if budget is not None:
+        assert all(len(b) == 1 or len(b) * b.padded_tokens <= budget for b in batches)
     per_setting: dict[str, list] = {}
     for b in batches:
         per_setting.setdefault(shapes[b.indices[0]].setting, []).append(b)
     for runs in per_setting.values():
-        assert all(len(b) == size for b in runs[:-1])  # only the last batch of a setting may be short
+        # every batch as full as its rows and budget allow; only the last batch of a setting may be short
+        assert all(len(b) == rows_allowed(b.padded_tokens, size, budget) for b in runs[:-1])
         lengths = [shapes[i].prompt_tokens for b in runs for i in b]
         assert lengths == sorted(lengths, reverse=True)
 
@@ -110,6 +127,12 @@ def test_small_helpers():
     assert contiguous_batches(5, 2) == [(0, 1), (2, 3), (4,)]
     assert padding_stats([], []).waste == 0.0
     assert (answer_chunk(1), answer_chunk(8), answer_chunk(32), answer_chunk(64)) == (64, 64, 256, 512)
-    for bad in (lambda: plan_batches([], 0), lambda: round_up(3, 0), lambda: contiguous_batches(3, 0)):
+    bad_calls = (
+        lambda: plan_batches([], 0),
+        lambda: plan_batches([], 4, max_batch_tokens=0),
+        lambda: round_up(3, 0),
+        lambda: contiguous_batches(3, 0),
+    )
+    for bad in bad_calls:
         with pytest.raises(ValueError):
             bad()

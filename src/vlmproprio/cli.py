@@ -117,6 +117,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             max_batch_size=args.batch_size,
             threads=args.threads,
             static_cache=args.static_cache,
+            max_batch_tokens=args.batch_tokens,
             base_url=args.base_url,
             api_key_env=args.api_key_env,
             concurrency=args.concurrency,
@@ -271,6 +272,11 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--attn", default="sdpa", help="attention implementation: eager | sdpa | flash_attention_2")
     g.add_argument("--batch-size", type=int, default=8, help="requests per generate() call (default 8)")
     g.add_argument("--threads", type=int, help="torch threads (pin to 1 for bit-identical CPU runs)")
+    g.add_argument(
+        "--batch-tokens",
+        type=int,
+        help="cap on a batch's rows x longest prompt, in tokens (default: 16384 on a CPU, none on a GPU)",
+    )
     g.add_argument(
         "--static-cache",
         action="store_true",

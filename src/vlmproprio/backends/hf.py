@@ -13,7 +13,8 @@ gets the same revision on every machine.
 
 Batching: ``plan_batches`` groups the requests it is given by shape (prompt
 length with image tokens, number of images; see vlmproprio.backends.scheduling)
-into batches of ``max_batch_size``; ``CachedBackend`` asks it for the plan of a
+into batches of ``max_batch_size`` rows and at most ``max_batch_tokens`` padded
+tokens (by default capped on a CPU only); ``CachedBackend`` asks it for the plan of a
 whole wave of misses, and ``generate`` uses it too, putting answers back in
 request order. Batches are padded on the left, so every row's prompt ends where
 generation starts, and batched greedy outputs equal one-by-one outputs (a test
@@ -64,6 +65,10 @@ ATTN_IMPLEMENTATIONS = ("eager", "sdpa", "flash_attention_2", "flash_attention_3
 WEIGHT_SUFFIXES = (".safetensors", ".bin")
 # Static caches are sized in steps of this many tokens: few shapes, so few recompilations of the decode step.
 DEFAULT_CACHE_BUCKET = 256
+# Default cap on a CPU batch's rows x longest prompt. On a CPU a padded batch is no faster than its rows one by
+# one, and its attention mask grows with rows x length squared: 8 Process 3 prompts of the tiny model (~9k
+# tokens each) in one batch peaked at 4.5 GB of memory and took 3x longer than one at a time.
+CPU_BATCH_TOKENS = 16384
 # Plain greedy decoding. transformers fills every setting left unset from the checkpoint's generation_config.json,
 # and real checkpoints ship sampling and penalty settings (Qwen2-VL: repetition_penalty 1.05, top_k 1, ...), so
 # every setting that changes the chosen token is set here, to its neutral value.
@@ -207,10 +212,12 @@ class HFBackend(Backend):
         static_cache: bool = False,
         compile_decode: bool | None = None,
         cache_bucket: int = DEFAULT_CACHE_BUCKET,
+        max_batch_tokens: int | None = None,
     ) -> None:
         """``static_cache``: a static KV cache per batch; ``compile_decode``: compile the decode step
         (None: on a GPU only, as transformers does; needs the static cache); ``cache_bucket``: static cache
-        lengths are multiples of it."""
+        lengths are multiples of it; ``max_batch_tokens``: cap on rows x longest prompt of a batch (None:
+        CPU_BATCH_TOKENS on a CPU, no cap elsewhere)."""
         if device not in DEVICES and not re.fullmatch(r"cuda:\d+", device):
             raise BackendError(f"unknown device {device!r}; choose cpu, cuda, cuda:N or auto")
         if dtype not in DTYPES:
@@ -225,6 +232,8 @@ class HFBackend(Backend):
             raise BackendError("compiling the decode step needs the static KV cache (static_cache=True)")
         if cache_bucket < 1:
             raise BackendError(f"cache_bucket must be >= 1, got {cache_bucket}")
+        if max_batch_tokens is not None and max_batch_tokens < 1:
+            raise BackendError(f"max_batch_tokens must be >= 1, got {max_batch_tokens}")
         self.weights = resolve_weights(weights, model_id)
         self.device = device
         self.dtype = _resolve_dtype(dtype, device)
@@ -234,6 +243,7 @@ class HFBackend(Backend):
         self.static_cache = static_cache
         self.compile_decode = compile_decode
         self.cache_bucket = cache_bucket
+        self.max_batch_tokens = max_batch_tokens if max_batch_tokens or device != "cpu" else CPU_BATCH_TOKENS
         self._image_tokens: dict[str, int] = {}  # image sha256 -> tokens it becomes (for the scheduler)
         # the last static cache, kept for the next batch of the same shape: a compiled decode step replays its
         # CUDA graph only while the cache tensors stay at the same addresses
@@ -315,7 +325,8 @@ class HFBackend(Backend):
                 )
         if not requests:
             return []
-        return [b.indices for b in plan_batches(self.request_shapes(requests), self.max_batch_size)]
+        shapes = self.request_shapes(requests)
+        return [b.indices for b in plan_batches(shapes, self.max_batch_size, self.max_batch_tokens)]
 
     def request_shapes(self, requests: Sequence[ChatRequest]) -> list[RequestShape]:
         """Prompt length (text tokens + the tokens each image becomes) and image count of each request."""

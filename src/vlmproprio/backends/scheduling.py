@@ -16,7 +16,12 @@ Qwen2-VL), the ``state_only`` control has none, and the state text of
   at once rather than after an hour;
 * cuts that order into batches of ``max_batch_size``, so every batch but the
   last of each setting is full (on a GPU, decoding is bound by reading the
-  weights once per step, whatever the batch size: full batches are what pays).
+  weights once per step, whatever the batch size: full batches are what pays);
+* optionally caps a batch's padded size, rows x longest prompt, at
+  ``max_batch_tokens``: prefill memory grows with it (and the attention mask
+  of a padded batch with rows x length squared), so a wave of long Process 3
+  prompts gets smaller batches than a wave of short ones. A request longer
+  than the cap runs alone.
 
 It only decides the grouping; the caller runs the batches and puts the answers
 back in request order (``Batch.indices`` are positions in the list given).
@@ -53,10 +58,22 @@ class Batch:
         return iter(self.indices)
 
 
-def plan_batches(shapes: Sequence[RequestShape], max_batch_size: int) -> list[Batch]:
-    """Batches of at most ``max_batch_size`` requests with alike shapes; every index appears exactly once."""
+def rows_allowed(padded_tokens: int, max_batch_size: int, max_batch_tokens: int | None) -> int:
+    """How many rows a batch whose longest prompt is ``padded_tokens`` may have."""
+    if max_batch_tokens is None:
+        return max_batch_size
+    return max(1, min(max_batch_size, max_batch_tokens // max(1, padded_tokens)))
+
+
+def plan_batches(
+    shapes: Sequence[RequestShape], max_batch_size: int, max_batch_tokens: int | None = None
+) -> list[Batch]:
+    """Batches of alike shapes, at most ``max_batch_size`` rows and (when given) ``max_batch_tokens`` padded
+    tokens each; every index appears exactly once."""
     if max_batch_size < 1:
         raise ValueError(f"max_batch_size must be >= 1, got {max_batch_size}")
+    if max_batch_tokens is not None and max_batch_tokens < 1:
+        raise ValueError(f"max_batch_tokens must be >= 1 or None, got {max_batch_tokens}")
     by_setting: dict[str, list[int]] = {}
     for i, s in enumerate(shapes):
         by_setting.setdefault(s.setting, []).append(i)
@@ -64,9 +81,12 @@ def plan_batches(shapes: Sequence[RequestShape], max_batch_size: int) -> list[Ba
     for members in by_setting.values():  # settings in order of first appearance
         # the index last: ties keep request order, so a plan is the same on every run
         order = sorted(members, key=lambda i: (-shapes[i].prompt_tokens, -shapes[i].images, i))
-        for start in range(0, len(order), max_batch_size):
-            chunk = tuple(order[start : start + max_batch_size])
-            batches.append(Batch(chunk, max(shapes[i].prompt_tokens for i in chunk)))
+        start = 0
+        while start < len(order):
+            longest = shapes[order[start]].prompt_tokens  # longest first: the batch's first row sets its padding
+            chunk = tuple(order[start : start + rows_allowed(longest, max_batch_size, max_batch_tokens)])
+            batches.append(Batch(chunk, longest))
+            start += len(chunk)
     return batches
 
 
