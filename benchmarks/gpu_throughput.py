@@ -185,6 +185,35 @@ def kv_bytes_per_token(model) -> int:
 # ---------------------------------------------------------------------------------------------- measuring
 
 
+def padding_by_window(backend, wave: list, batch_sizes: list[int]) -> list[dict]:
+    """Left padding of the whole wave when the scheduler sees chunks of it, as the runner hands them over."""
+    from vlmproprio.backends.scheduling import contiguous_batches, padding_stats, plan_batches
+    from vlmproprio.pipeline import DEFAULT_CHUNK, answer_chunk
+
+    shapes = backend.request_shapes(wave)
+
+    def planned(size: int, window: int) -> list:
+        out = []
+        for start in range(0, len(shapes), window):
+            part = shapes[start : start + window]
+            out += [[start + i for i in b] for b in plan_batches(part, size, backend.max_batch_tokens)]
+        return out
+
+    rows = []
+    for b in batch_sizes:
+        rows.append(
+            {
+                "batch": b,
+                "arrival_order": padding_stats(shapes, contiguous_batches(len(shapes), b)).waste,
+                "old_chunks_of_64": padding_stats(shapes, planned(b, DEFAULT_CHUNK)).waste,
+                "chunk_now": answer_chunk(b),
+                "chunks_now": padding_stats(shapes, planned(b, answer_chunk(b))).waste,
+                "whole_wave": padding_stats(shapes, planned(b, len(shapes))).waste,
+            }
+        )
+    return rows
+
+
 def timed(backend, requests) -> tuple[float, list]:
     t0 = time.perf_counter()
     answers = backend.generate(requests)  # the backend synchronises the GPU after every batch
@@ -268,6 +297,9 @@ def main(argv=None) -> int:
         "build_s": round(time.perf_counter() - t0, 1),
     }
     emit(req_info)
+    padding = padding_by_window(base, p1, batch_sizes)
+    for row in padding:
+        emit({"what": "padding", **row})
     results: list[dict] = []
 
     # one request at a time, plain generate() with the dynamic cache
@@ -371,6 +403,9 @@ def main(argv=None) -> int:
     cols += ["padding_waste", "padding_waste_arrival_order", "same_text_as_one_at_a_time"]
     print(table(results, cols))
     print()
+    print(f"left padding over the whole P1 wave ({len(p1)} requests), fraction of prefill positions:")
+    print(table(padding, ["batch", "arrival_order", "old_chunks_of_64", "chunks_now", "chunk_now", "whole_wave"]))
+    print()
     print(
         table([decode], ["batch", "step_ms", "bound_all_weights_ms", "bound_language_model_ms", "bound_lm_plus_kv_ms"])
     )
@@ -383,8 +418,8 @@ def main(argv=None) -> int:
     )
     write_json(
         args.out,
-        {"machine": info, "requests": req_info, "throughput": results, "decode": decode, "waves": est_rows,
-         "estimate": estimate},
+        {"machine": info, "requests": req_info, "padding": padding, "throughput": results, "decode": decode,
+         "waves": est_rows, "estimate": estimate},
     )  # fmt: skip
     return 0
 

@@ -155,3 +155,28 @@ def test_a_cpu_batch_is_capped_in_tokens(make_backend, request_factory, png_fact
 def test_identity_ignores_how_answers_are_computed(make_backend):
     # static cache and batch size change how, not what: like the device they stay out of the cache key
     assert make_backend(static_cache=True, max_batch_size=64).identity() == make_backend().identity()
+
+
+@pytest.mark.slow
+def test_the_throughput_benchmark_runs_on_the_tiny_model(tmp_path, vlmproprio_home):
+    """benchmarks/gpu_throughput.py --tiny, cut down: the GPU benchmark's code path must not rot untested."""
+    import json
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    out = tmp_path / "t.json"
+    cmd = [sys.executable, str(root / "benchmarks" / "gpu_throughput.py"), "--tiny", "--out", str(out)]
+    cmd += ["--requests", "4", "--single", "2", "--batch-sizes", "2", "4", "--new-tokens", "4"]
+    cmd += ["--p2-requests", "2", "--p3-requests", "1"]
+    subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=300)
+    doc = json.loads(out.read_text())
+    rows = doc["throughput"]
+    assert [r["mode"] for r in rows] == ["one-at-a-time", "live b=2 static", "live b=4 static"]
+    assert all(r["req_per_s"] > 0 for r in rows)
+    assert {r["same_text_as_one_at_a_time"] for r in rows[1:]} == {"2/2"}  # batching changed no answer
+    assert doc["requests"]["p1_requests"] == 1088 and doc["requests"]["cells"] == 176
+    assert [w["wave"] for w in doc["waves"]] == ["p1", "p2", "p3"]
+    assert doc["estimate"]["requests"] == 1088 + 1088 + 176
