@@ -314,7 +314,9 @@ def prefill_embeddings(run_dir: Path, encoder_key: str, cache_dir: Path | None =
     from vlmproprio.embeddings import EmbeddingStore, default_embedding_dir
 
     if cache_dir is None and encoder_key != fake_spec().key:
-        raise AssertionError(f"prefill_embeddings: fake vectors for the real encoder {encoder_key!r} need a private cache_dir")
+        raise AssertionError(
+            f"prefill_embeddings: fake vectors for the real encoder {encoder_key!r} need a private cache_dir"
+        )
     from vlmproprio.transcripts import read_transcripts
 
     texts = {f.text for t in read_transcripts(run_dir) for f in t.frames if f.text.strip() and f.status != "missing"}

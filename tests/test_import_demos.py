@@ -465,7 +465,9 @@ def test_imported_episodes_run_through_run_and_score(imported, tmp_path, capsys,
     argv = ["run", "--model", "reference", "--fixtures", str(root), "--out", str(run), "--no-progress"]
     assert main([*argv, "--conditions", "paper", "--cache-dir", str(tmp_path / "cache")]) == 0
     assert f"{len(pairs) * 4} transcripts" in capsys.readouterr().out
-    prefill_embeddings(run, encoder_spec().key, default_embedding_dir())  # no torch: the frame-caption vectors are given
+    prefill_embeddings(
+        run, encoder_spec().key, default_embedding_dir()
+    )  # no torch: the frame-caption vectors are given
     assert main(["score", str(run)]) == 0
     assert f"scored {len(pairs) * 4} transcripts" in capsys.readouterr().out
     rows = json.loads((run / "scores" / "rows.json").read_text())

@@ -260,7 +260,9 @@ def test_cli_report_scores_an_unscored_run_first(run, tmp_path, capsys, monkeypa
     monkeypatch.setenv("VLMPROPRIO_CACHE", str(tmp_path / "cache"))  # fake vectors stay out of the session cache
     copy = tmp_path / "run"
     shutil.copytree(run[0], copy, ignore=shutil.ignore_patterns("report", "scores", "embeddings"))
-    prefill_embeddings(copy, encoder_spec().key, default_embedding_dir())  # the default encoder's vectors: scoring needs no torch
+    prefill_embeddings(
+        copy, encoder_spec().key, default_embedding_dir()
+    )  # the default encoder's vectors: scoring needs no torch
     assert main(["report", str(copy), "--examples", "door_02", "--trace-conditions", "ee,both"]) == 0
     out = capsys.readouterr().out
     assert "scored" in out and f"report: {copy / 'report' / 'index.html'}" in out

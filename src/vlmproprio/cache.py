@@ -530,8 +530,8 @@ class CachedBackend:
 
     Modes:
 
-    * ``live``: serve hits, send misses to the backend in batches of ``backend.max_batch_size``,
-      store each batch's answers as soon as it returns. A corrupt entry is dropped and recomputed.
+    * ``live``: serve hits, send misses to the backend in the batches ``backend.plan_batches`` makes
+      (at most ``backend.max_batch_size`` each), store each batch's answers as soon as it returns. A corrupt entry is dropped and recomputed.
     * ``record``: as live, and every answer used is kept in :attr:`used` for
       :meth:`export_cassette`.
     * ``replay``: never call a model: hits from the cache (if one is given; a corrupt entry is
@@ -610,9 +610,9 @@ class CachedBackend:
             where = f"cache {self.cache.directory}" if self.cache is not None else "the cache (none given)"
             raise ReplayMissError(replay_miss_message(self.model, key, requests[i].tag, where), key, requests[i].tag)
         items = list(todo.items())
-        size = max(1, int(self.backend.max_batch_size))
-        for start in range(0, len(items), size):
-            batch = items[start : start + size]
+        # the backend groups its misses (a local model puts alike shapes together); answers are stored per batch
+        for plan in self.backend.plan_batches([requests[i] for _, i in items]):
+            batch = [items[j] for j in plan]
             batch_requests = [requests[i] for _, i in batch]
             self.stats["misses"] += len(batch)
             try:

@@ -138,6 +138,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             attn_implementation=args.attn,
             max_batch_size=args.batch_size,
             threads=args.threads,
+            static_cache=args.static_cache,
+            max_batch_tokens=args.batch_tokens,
             base_url=args.base_url,
             api_key_env=args.api_key_env,
             concurrency=args.concurrency,
@@ -368,6 +370,16 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--attn", default="sdpa", help="attention implementation: eager | sdpa | flash_attention_2")
     g.add_argument("--batch-size", type=int, default=8, help="requests per generate() call (default 8)")
     g.add_argument("--threads", type=int, help="torch threads (pin to 1 for bit-identical CPU runs)")
+    g.add_argument(
+        "--batch-tokens",
+        type=int,
+        help="cap on a batch's rows x longest prompt, in tokens (default: 16384 on a CPU, none on a GPU)",
+    )
+    g.add_argument(
+        "--static-cache",
+        action="store_true",
+        help="static KV cache; on a GPU the decode step is compiled (first batches pay ~1 min; pays on long runs)",
+    )
     g = p.add_argument_group("OpenAI-compatible servers (openai)")
     g.add_argument("--base-url", help="server URL, e.g. http://127.0.0.1:8000/v1 for vLLM (default: OpenAI)")
     g.add_argument("--api-key-env", default="OPENAI_API_KEY", help="environment variable holding the key")

@@ -11,7 +11,9 @@ So an episode of N sampled frames costs 2 * ceil(N / k) + 1 model calls per cond
 
 All (episode, condition) cells advance together in three waves (every Process 1 request, then every
 Process 2, then every Process 3), so a batching backend sees large batches, and a run that is stopped and
-started again finds every answer it already had in the cache.
+started again finds every answer it already had in the cache. A wave goes to the answerer in chunks of
+several batches (``answer_chunk``), so a backend that groups alike shapes (a local model) can pick them
+across groups, episodes and conditions, while the progress bar still moves.
 """
 
 from __future__ import annotations
@@ -193,6 +195,16 @@ class CellRun:
         )
 
 
+DEFAULT_CHUNK = 64
+CHUNK_BATCHES = 8  # batches per answerer call
+
+
+def answer_chunk(max_batch_size: int) -> int:
+    """Requests per answerer call for a backend taking ``max_batch_size`` per batch: ``CHUNK_BATCHES`` batches
+    to group by shape (one model's Process 1 wave is about 1,100 requests), at least ``DEFAULT_CHUNK``."""
+    return max(DEFAULT_CHUNK, CHUNK_BATCHES * max(1, int(max_batch_size)))
+
+
 def _answer_in_chunks(requests: list[ChatRequest], answer: Answerer, chunk: int, bar) -> list[Answer]:
     out: list[Answer] = []
     for i in range(0, len(requests), chunk):
@@ -214,7 +226,7 @@ def caption_episodes(
     settings: PipelineSettings = PipelineSettings(),
     *,
     peers: Sequence[Episode] | None = None,
-    chunk: int = 64,
+    chunk: int = DEFAULT_CHUNK,
     progress: bool = True,
 ) -> list[Transcript]:
     """Run Processes 1-3 for every (episode, condition); one Transcript each, in episode-major order.

@@ -22,7 +22,7 @@ from urllib.parse import urlsplit, urlunsplit
 from vlmproprio.conditions import Condition
 from vlmproprio.episodes import Episode, atomic_write_text, load_episodes, register_fixture_file
 from vlmproprio.errors import UsageError
-from vlmproprio.pipeline import PipelineSettings, calls_per_episode, caption_episodes
+from vlmproprio.pipeline import PipelineSettings, answer_chunk, calls_per_episode, caption_episodes
 from vlmproprio.transcripts import Transcript, write_transcript
 
 RUN_FILE = "run.json"
@@ -153,7 +153,14 @@ def run_model(name: str, plan: RunPlan, episodes: list[Episode], peers: list[Epi
         cached = CachedBackend(backend, mode=plan.mode, cache=cache, model=slug)
         pipeline = plan.pipeline_for(name)
         transcripts = caption_episodes(
-            episodes, plan.conditions, cached.answer, slug, pipeline, peers=peers, progress=plan.progress
+            episodes,
+            plan.conditions,
+            cached.answer,
+            slug,
+            pipeline,
+            peers=peers,
+            chunk=answer_chunk(backend.max_batch_size),
+            progress=plan.progress,
         )
         for t in transcripts:
             write_transcript(plan.out, t)

@@ -12,6 +12,7 @@ from __future__ import annotations
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
 
+from vlmproprio.backends.scheduling import contiguous_batches
 from vlmproprio.chat import Answer, ChatRequest
 from vlmproprio.errors import VlmproprioError
 
@@ -42,6 +43,13 @@ class Backend(ABC):
     @abstractmethod
     def generate(self, requests: Sequence[ChatRequest]) -> list[Answer]:
         """One answer per request, in order. Raises BackendError when it cannot answer at all."""
+
+    def plan_batches(self, requests: Sequence[ChatRequest]) -> list[tuple[int, ...]]:
+        """How to split ``requests`` into ``generate`` calls: positions, every one exactly once.
+
+        Arrival order in chunks of ``max_batch_size`` here; a backend whose cost depends on how alike a
+        batch is (a local model pads every row to the longest) groups them its own way."""
+        return contiguous_batches(len(requests), max(1, int(self.max_batch_size)))
 
     def close(self) -> None:  # noqa: B027 - optional hook
         """Free what the backend holds (GPU memory, HTTP pools)."""

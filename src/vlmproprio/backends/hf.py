@@ -11,11 +11,27 @@ cache, else ``sha256:<hex>`` over the weight files (``*.safetensors``,
 ``*.bin``, by relative path), so a local folder, such as a tiny test model,
 gets the same revision on every machine.
 
-Batches are padded on the left, so every row's prompt ends where generation
-starts, and batched greedy outputs equal one-by-one outputs (a test checks it
-on the tiny model). Decoding is plain greedy whatever the checkpoint's
-``generation_config.json`` suggests (no repetition penalty). All generation goes through ``_generate_batch``, the one
-place a batching scheduler or a static KV cache would go.
+Batching: ``plan_batches`` groups the requests it is given by shape (prompt
+length with image tokens, number of images; see vlmproprio.backends.scheduling)
+into batches of ``max_batch_size`` rows and at most ``max_batch_tokens`` padded
+tokens (by default capped on a CPU only); ``CachedBackend`` asks it for the plan of a
+whole wave of misses, and ``generate`` uses it too, putting answers back in
+request order. Batches are padded on the left, so every row's prompt ends where
+generation starts, and batched greedy outputs equal one-by-one outputs (a test
+checks it on the tiny model, with mixed image counts). Decoding is plain greedy
+whatever the checkpoint's ``generation_config.json`` suggests (no repetition
+penalty). All generation goes through ``_generate_batch``.
+
+Static KV cache (``static_cache=True``, off by default): each batch gets a
+``StaticCache`` sized to its prompt plus ``max_new_tokens``, rounded up to
+``cache_bucket`` tokens so that batches of a wave share a few cache shapes, and
+transformers compiles the decode step with ``torch.compile`` (CUDA graphs) when
+the model is on a GPU. The first calls pay the compilation (about a minute on
+an H100); it pays on long runs of large batches, where a decode step is bound
+by reading the weights. ``compile_decode=True`` compiles on a CPU too (slow to
+compile; for tests), ``False`` never. Neither the cache kind nor the batch size
+enters the cache key: like the device, they are how an answer was computed,
+recorded in ``AnswerMeta.extra``.
 
 Without torchvision (it cannot be installed next to the CPU torch used here),
 ``AutoProcessor`` fails for processors that also declare a video processor
@@ -40,12 +56,20 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vlmproprio.backends.base import Backend, BackendError
+from vlmproprio.backends.scheduling import RequestShape, plan_batches, round_up
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart
+from vlmproprio.episodes import sha256_file
 
 DEVICES = ("cpu", "cuda", "auto")
 DTYPES = ("auto", "float32", "bfloat16", "float16")
 ATTN_IMPLEMENTATIONS = ("eager", "sdpa", "flash_attention_2", "flash_attention_3", "flex_attention")
 WEIGHT_SUFFIXES = (".safetensors", ".bin")
+# Static caches are sized in steps of this many tokens: few shapes, so few recompilations of the decode step.
+DEFAULT_CACHE_BUCKET = 256
+# Default cap on a CPU batch's rows x longest prompt. On a CPU a padded batch is no faster than its rows one by
+# one, and its attention mask grows with rows x length squared: 8 Process 3 prompts of the tiny model (~9k
+# tokens each) in one batch peaked at 4.5 GB of memory and took 3x longer than one at a time.
+CPU_BATCH_TOKENS = 16384
 # Plain greedy decoding. transformers fills every setting left unset from the checkpoint's generation_config.json,
 # and real checkpoints ship sampling and penalty settings (Qwen2-VL: repetition_penalty 1.05, top_k 1, ...), so
 # every setting that changes the chosen token is set here, to its neutral value.
@@ -78,11 +102,7 @@ def weights_sha256(folder: Path) -> str:
         raise BackendError(f"{folder}: no weight files (*.safetensors or *.bin)")
     h = hashlib.sha256()
     for p in files:
-        fh = hashlib.sha256()
-        with open(p, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 22), b""):
-                fh.update(chunk)
-        h.update(f"{p.relative_to(folder).as_posix()}\0{fh.hexdigest()}\n".encode())
+        h.update(f"{p.relative_to(folder).as_posix()}\0{sha256_file(p)}\n".encode())
     return "sha256:" + h.hexdigest()
 
 
@@ -186,7 +206,15 @@ class HFBackend(Backend):
         attn_implementation: str = "sdpa",
         max_batch_size: int = 8,
         threads: int | None = None,
+        static_cache: bool = False,
+        compile_decode: bool | None = None,
+        cache_bucket: int = DEFAULT_CACHE_BUCKET,
+        max_batch_tokens: int | None = None,
     ) -> None:
+        """``static_cache``: a static KV cache per batch; ``compile_decode``: compile the decode step
+        (None: on a GPU only, as transformers does; needs the static cache); ``cache_bucket``: static cache
+        lengths are multiples of it; ``max_batch_tokens``: cap on rows x longest prompt of a batch (None:
+        CPU_BATCH_TOKENS on a CPU, no cap elsewhere)."""
         if device not in DEVICES and not re.fullmatch(r"cuda:\d+", device):
             raise BackendError(f"unknown device {device!r}; choose cpu, cuda, cuda:N or auto")
         if dtype not in DTYPES:
@@ -197,12 +225,26 @@ class HFBackend(Backend):
             )
         if max_batch_size < 1:
             raise BackendError(f"max_batch_size must be >= 1, got {max_batch_size}")
+        if compile_decode and not static_cache:
+            raise BackendError("compiling the decode step needs the static KV cache (static_cache=True)")
+        if cache_bucket < 1:
+            raise BackendError(f"cache_bucket must be >= 1, got {cache_bucket}")
+        if max_batch_tokens is not None and max_batch_tokens < 1:
+            raise BackendError(f"max_batch_tokens must be >= 1, got {max_batch_tokens}")
         self.weights = resolve_weights(weights, model_id)
         self.device = device
         self.dtype = _resolve_dtype(dtype, device)
         self.attn_implementation = attn_implementation
         self.max_batch_size = max_batch_size
         self.threads = threads
+        self.static_cache = static_cache
+        self.compile_decode = compile_decode
+        self.cache_bucket = cache_bucket
+        self.max_batch_tokens = max_batch_tokens if max_batch_tokens or device != "cpu" else CPU_BATCH_TOKENS
+        self._image_tokens: dict[str, int] = {}  # image sha256 -> tokens it becomes (for the scheduler)
+        # the last static cache, kept for the next batch of the same shape: a compiled decode step replays its
+        # CUDA graph only while the cache tensors stay at the same addresses
+        self._static: tuple[tuple[int, int], object] | None = None
         self.model = None
         self.processor = None
         self.processor_via = ""
@@ -250,6 +292,7 @@ class HFBackend(Backend):
     def close(self) -> None:
         self.model = None
         self.processor = None
+        self._static = None
 
     @property
     def placement(self) -> str:
@@ -263,28 +306,89 @@ class HFBackend(Backend):
 
     # -------------------------------------------------------------------------------- generation
     def generate(self, requests: Sequence[ChatRequest]) -> list[Answer]:
-        self.load()
         out: list[Answer | None] = [None] * len(requests)
-        # requests with different decoding settings cannot share a generate() call
-        groups: dict[str, list[int]] = {}
-        for i, r in enumerate(requests):
+        for batch in self.plan_batches(requests):
+            for i, ans in zip(batch, self._generate_batch([requests[i] for i in batch]), strict=True):
+                out[i] = ans
+        return out  # type: ignore[return-value]
+
+    def plan_batches(self, requests: Sequence[ChatRequest]) -> list[tuple[int, ...]]:
+        """Batches of alike shapes, longest prompts first (see vlmproprio.backends.scheduling)."""
+        for r in requests:
             if r.config.temperature != 0:
                 raise BackendError(
                     f"{r.tag}: the hf backend decodes greedily (temperature 0, the paper's setting); "
                     f"got temperature={r.config.temperature}"
                 )
-            groups.setdefault(json.dumps(r.config.to_dict(), sort_keys=True), []).append(i)
-        for idx in groups.values():
-            for start in range(0, len(idx), self.max_batch_size):
-                chunk = idx[start : start + self.max_batch_size]
-                for i, ans in zip(chunk, self._generate_batch([requests[i] for i in chunk]), strict=True):
-                    out[i] = ans
-        return out  # type: ignore[return-value]
+        if not requests:
+            return []
+        shapes = self.request_shapes(requests)
+        return [b.indices for b in plan_batches(shapes, self.max_batch_size, self.max_batch_tokens)]
+
+    def request_shapes(self, requests: Sequence[ChatRequest]) -> list[RequestShape]:
+        """Prompt length (text tokens + the tokens each image becomes) and image count of each request."""
+        self.load()
+        texts = [self._chat_text(r) for r in requests]
+        lengths = [len(ids) for ids in self.processor.tokenizer(texts, add_special_tokens=False)["input_ids"]]
+        shapes = []
+        for r, n_text in zip(requests, lengths, strict=True):
+            # the chat text holds one placeholder token per image; the processor expands it
+            n_image = sum(self._tokens_of(img) - 1 for img in r.images)
+            setting = json.dumps(r.config.to_dict(), sort_keys=True)
+            shapes.append(RequestShape(setting, n_text + n_image, len(r.images)))
+        return shapes
+
+    def _tokens_of(self, img: ImagePart) -> int:
+        """How many tokens the processor makes of ``img`` (from its size; the pixels are not decoded)."""
+        if img.sha256 not in self._image_tokens:
+            from PIL import Image
+
+            try:
+                with Image.open(io.BytesIO(img.data)) as im:
+                    width, height = im.size
+                counts = self.processor._get_num_multimodal_tokens(image_sizes=[(height, width)])
+                n = int(counts["num_image_tokens"][0])
+            except (AttributeError, KeyError, TypeError, ValueError, OSError):
+                # only an ordering hint: a processor without the count, or a bad image (which fails later with
+                # its own message), sorts by text length and image count
+                n = 1
+            self._image_tokens[img.sha256] = n
+        return self._image_tokens[img.sha256]
+
+    def _compiles_decode(self) -> bool:
+        if not self.static_cache or self.compile_decode is False:
+            return False
+        return bool(self.compile_decode) or self.model.device.type == "cuda"
+
+    def _cache_kwargs(self, rows: int, prompt_len: int, max_new_tokens: int) -> tuple[dict, dict]:
+        """generate() arguments for the KV cache, and what to record about it."""
+        if not self.static_cache:
+            return {}, {"kv_cache": "dynamic"}
+        from transformers import CompileConfig, StaticCache
+
+        length = round_up(prompt_len + max_new_tokens, self.cache_bucket)
+        if self._static is not None and self._static[0] == (rows, length):
+            cache = self._static[1]
+            cache.reset()
+        else:
+            self._static = None  # free the old one first: at large batches a cache is gigabytes
+            cache = StaticCache(config=self.model.config.get_text_config(decoder=True), max_cache_len=length)
+            self._static = ((rows, length), cache)
+        kwargs: dict = {"cache": cache}
+        if not self._compiles_decode():
+            kwargs["disable_compile"] = True
+        elif self.model.device.type != "cuda":
+            # transformers compiles on accelerators only unless told; CUDA graphs need a GPU, hence "default"
+            compile_config = CompileConfig(mode="default")
+            compile_config._compile_all_devices = True
+            kwargs["compile_config"] = compile_config
+        return kwargs, {"kv_cache": "static", "cache_len": length, "compiled_decode": self._compiles_decode()}
 
     def _generate_batch(self, requests: Sequence[ChatRequest]) -> list[Answer]:
         """The one generation loop: same decoding settings, at most max_batch_size requests."""
         import torch
 
+        self.load()
         cfg = requests[0].config
         texts = [self._chat_text(r) for r in requests]
         images = [_decode_image(img, r) for r in requests for img in r.images]
@@ -294,16 +398,17 @@ class HFBackend(Backend):
             k: (v.to(target, dtype=self.model.dtype) if torch.is_floating_point(v) else v.to(target))
             for k, v in inputs.items()
         }
+        prompt_len = inputs["input_ids"].shape[1]
         gen = dict(max_new_tokens=cfg.max_new_tokens, **PURE_GREEDY)
         if cfg.min_new_tokens:
             gen["min_new_tokens"] = cfg.min_new_tokens
         t0 = time.perf_counter()
-        with torch.inference_mode():
-            seq = self.model.generate(**inputs, **gen)
+        with torch.inference_mode():  # a kept static cache holds inference tensors: reset it in here too
+            cache_kwargs, cache_meta = self._cache_kwargs(len(requests), prompt_len, cfg.max_new_tokens)
+            seq = self.model.generate(**inputs, **gen, **cache_kwargs)
         if target.type == "cuda":
             torch.cuda.synchronize(target)
         elapsed = time.perf_counter() - t0
-        prompt_len = inputs["input_ids"].shape[1]
         new_tokens = seq[:, prompt_len:]
         decoded = self.processor.tokenizer.batch_decode(new_tokens, skip_special_tokens=True)
         prompt_counts = inputs["attention_mask"].sum(dim=1).tolist()
@@ -317,7 +422,13 @@ class HFBackend(Backend):
                 prompt_tokens=int(n_prompt),
                 completion_tokens=n_new,
                 latency_s=elapsed / len(requests),
-                extra={"batch_size": len(requests), "batch_latency_s": elapsed, "processor": self.processor_via},
+                extra={
+                    "batch_size": len(requests),
+                    "batch_latency_s": elapsed,
+                    "padded_prompt_tokens": int(prompt_len),
+                    "processor": self.processor_via,
+                    **cache_meta,
+                },
             )
             answers.append(Answer(text=text.strip(), meta=meta))
         return answers

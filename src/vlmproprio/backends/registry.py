@@ -158,6 +158,8 @@ class BackendSettings:
     attn_implementation: str = "sdpa"  # hf: eager | sdpa | flash_attention_2 | ...
     max_batch_size: int = 8  # hf: requests per generate() call
     threads: int | None = None  # hf: torch threads (pin to 1 for bit-identical CPU runs)
+    static_cache: bool = False  # hf: static KV cache per batch, decode step compiled on a GPU (not in the cache key)
+    max_batch_tokens: int | None = None  # hf: cap on rows x longest prompt per batch (None: 16384 on a CPU, else none)
     base_url: str | None = None  # openai: server URL, e.g. http://127.0.0.1:8000/v1 for vLLM
     api_key_env: str = "OPENAI_API_KEY"  # openai: the environment variable holding the key
     concurrency: int = 4  # openai: requests in flight
@@ -208,6 +210,8 @@ def create_backend(name: str, mode: str = "live", settings: BackendSettings | No
             attn_implementation=settings.attn_implementation,
             max_batch_size=settings.max_batch_size,
             threads=settings.threads,
+            static_cache=settings.static_cache,
+            max_batch_tokens=settings.max_batch_tokens,
         )
     from vlmproprio.backends.openai import OpenAIBackend
 

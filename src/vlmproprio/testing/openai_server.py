@@ -208,6 +208,12 @@ def _make_handler(server: FakeOpenAIServer) -> type[BaseHTTPRequestHandler]:
     class Handler(BaseHTTPRequestHandler):
         protocol_version = "HTTP/1.1"  # keep-alive, like real servers; every response has Content-Length
 
+        def setup(self) -> None:
+            super().setup()
+            # headers and body go out in two writes; with Nagle's algorithm the second waits for the client's
+            # delayed ACK (~40 ms per request on Linux). Real servers (uvicorn, vLLM) turn it off too.
+            self.connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
         def log_message(self, format: str, *args) -> None:
             """Silent: request lines may carry anything, and tests want clean output."""
 
