@@ -25,6 +25,7 @@ import json
 import logging
 import os
 import random
+import re
 import threading
 import time
 from collections.abc import Sequence
@@ -44,9 +45,13 @@ class MalformedCompletion(Exception):
     """A 200 response whose body parsed but is not a usable chat completion (no choices, non-text content)."""
 
 
+_LONE_SURROGATE = re.compile("[\ud800-\udfff]")
+
+
 def _server_text(value: object) -> str:
-    """A string field of a response ("" when the server sent something else)."""
-    return value if isinstance(value, str) else ""
+    """A string field of a response as valid Unicode. JSON escapes can carry lone surrogates ("\\ud800"), which
+    no UTF-8 file can hold: they would break the cache checksum and the transcript writer."""
+    return _LONE_SURROGATE.sub("\ufffd", value) if isinstance(value, str) else ""
 
 
 def _count(value: object) -> int:
