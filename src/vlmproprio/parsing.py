@@ -94,7 +94,7 @@ def _from_json(answer: str, count: int) -> dict[int, str]:
     elif isinstance(data, dict):
         for k, v in data.items():
             m = re.search(r"\d+", str(k))
-            if m:
+            if m and len(m.group()) <= 9:  # a longer number is no frame, and past 4300 digits int() raises
                 items.append((int(m.group()), v))
     found: dict[int, str] = {}
     for n, v in items:
