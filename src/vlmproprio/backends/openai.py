@@ -23,6 +23,7 @@ from __future__ import annotations
 import base64
 import json
 import logging
+import math
 import os
 import random
 import re
@@ -87,6 +88,8 @@ class OpenAIBackend(Backend):
     ) -> None:
         if concurrency < 1:
             raise BackendError(f"concurrency must be >= 1, got {concurrency}")
+        if not (math.isfinite(timeout_s) and timeout_s > 0):  # the socket layer would raise deep inside a request
+            raise BackendError(f"timeout must be a positive number of seconds, got {timeout_s}")
         if not api_key_env.replace("_", "").isalnum():
             raise BackendError(f"api_key_env must be an environment variable name, got {api_key_env!r}")
         self.model = model
