@@ -47,6 +47,9 @@ EPISODE_FILE = "episode.json"
 STEPS_FILE = "steps.npz"
 FRAMES_DIR = "frames"
 
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # the empty IEND chunk and its CRC: every complete PNG ends so
+
 # Episode ids become path components: keep them to a closed alphabet so that no id can leave its folder.
 EPISODE_ID_RE = re.compile(r"^[a-z0-9][a-z0-9_-]{0,63}$")
 
@@ -76,7 +79,20 @@ class Frame:
     direction: str
 
     def image_bytes(self) -> bytes:
-        return self.image_path.read_bytes()
+        """The PNG file as it is (what a model is sent); EpisodeError when it is not a whole PNG.
+
+        Only the signature and the closing IEND chunk are checked (no decoding): enough to catch a truncated or
+        foreign file that a regenerated manifest would otherwise bless, at no cost."""
+        try:
+            data = self.image_path.read_bytes()
+        except OSError as exc:
+            raise EpisodeError(f"{self.image_path}: cannot read image ({exc.strerror or exc})") from exc
+        if not (data.startswith(PNG_SIGNATURE) and data.endswith(PNG_END)):
+            raise EpisodeError(
+                f"{self.image_path}: not a complete PNG file (truncated or damaged); restore it (git checkout) "
+                "or re-record the episode"
+            )
+        return data
 
     def image_array(self) -> np.ndarray:
         """Decoded RGB pixels (H, W, 3) uint8."""

@@ -60,7 +60,8 @@ def _cap(p: Parsed) -> Parsed:
 
 def _is_state_echo(text: str) -> bool:
     """A prompt's own state line repeated back (``Frame 2: joint angles [...]``) is not a caption."""
-    return _STATE_ECHO.match(text) is not None
+    numbered = _LOOSE.match(text)  # with its "Frame 2:" label, as the unnumbered fallback sees whole lines
+    return _STATE_ECHO.match(numbered.group(2) if numbered else text) is not None
 
 
 def _numbered(lines: list[str], count: int, rx: re.Pattern) -> dict[int, str]:
@@ -94,7 +95,7 @@ def _from_json(answer: str, count: int) -> dict[int, str]:
     elif isinstance(data, dict):
         for k, v in data.items():
             m = re.search(r"\d+", str(k))
-            if m:
+            if m and len(m.group()) <= 9:  # a longer number is no frame, and past 4300 digits int() raises
                 items.append((int(m.group()), v))
     found: dict[int, str] = {}
     for n, v in items:

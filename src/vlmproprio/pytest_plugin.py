@@ -54,9 +54,14 @@ def pytest_addoption(parser: pytest.Parser) -> None:
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    # A wrong --model / --episodes / --conditions is a usage error before collection (one clean line), but
-    # only when given: the plugin is loaded in every pytest session, including other projects'.
-    if config.getoption("vp_models") or config.getoption("vp_episodes") or config.getoption("vp_conditions") != "all":
+    # A wrong --model / --episodes / --conditions / --bench-fixtures is a usage error before collection (one clean
+    # line), but only when given: the plugin is loaded in every pytest session, including other projects'.
+    if (
+        config.getoption("vp_models")
+        or config.getoption("vp_episodes")
+        or config.getoption("vp_conditions") != "all"
+        or config.getoption("vp_fixtures")
+    ):
         _session(config)
 
 
@@ -174,6 +179,10 @@ def _session(config: pytest.Config) -> BenchSession:
     episodes = tuple(e.strip() for e in episodes_opt.split(",") if e.strip()) if episodes_opt else ()
     if not episodes:
         episodes = tuple(list_episode_ids(fixtures))
+    if not episodes:  # no cells to parametrise: pytest would crash (INTERNALERROR) on the empty parameter list
+        raise pytest.UsageError(
+            f"--bench-fixtures: no episodes in {fixtures / 'episodes'}; point it at a fixture folder"
+        )
     known = set(list_episode_ids(fixtures))
     unknown = [e for e in episodes if e not in known]
     if unknown:

@@ -196,7 +196,12 @@ def run(plan: RunPlan) -> list[ModelRun]:
         if missing:
             raise UsageError(f"unknown episode(s) {', '.join(missing)} in {plan.fixtures}; known: {', '.join(by_id)}")
         episodes = [by_id[eid] for eid in plan.episode_ids]
-    plan.out.mkdir(parents=True, exist_ok=True)
+    try:
+        plan.out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a file in the way, no permission: the user's --out, not a bug
+        raise UsageError(
+            f"cannot create run directory {plan.out}: {exc.strerror or exc}; choose another --out"
+        ) from exc
     runs: list[ModelRun] = []
     _write_run_file(plan, episodes, runs, "running", settings)
     for name in plan.models:

@@ -23,8 +23,10 @@ from __future__ import annotations
 import base64
 import json
 import logging
+import math
 import os
 import random
+import re
 import threading
 import time
 from collections.abc import Sequence
@@ -38,6 +40,35 @@ log = logging.getLogger(__name__)
 DEFAULT_KEY_ENV = "OPENAI_API_KEY"
 # What the SDK is given when a key-less local server (vLLM, SGLang) is used: it insists on some string.
 NO_KEY_PLACEHOLDER = "no-key"
+
+
+class MalformedCompletion(Exception):
+    """A 200 response whose body parsed but is not a usable chat completion (no choices, non-text content)."""
+
+
+_LONE_SURROGATE = re.compile("[\ud800-\udfff]")
+
+
+def _server_text(value: object) -> str:
+    """A string field of a response as valid Unicode. JSON escapes can carry lone surrogates ("\\ud800"), which
+    no UTF-8 file can hold: they would break the cache checksum and the transcript writer."""
+    return _LONE_SURROGATE.sub("\ufffd", value) if isinstance(value, str) else ""
+
+
+def _count(value: object) -> int:
+    """A token count as the server gave it; anything but a non-negative integer counts as unknown (0)."""
+    return value if isinstance(value, int) and not isinstance(value, bool) and value >= 0 else 0
+
+
+def _completion_text(resp) -> str:
+    """The answer of a chat completion; MalformedCompletion when the body is not one (the SDK does not check)."""
+    choices = getattr(resp, "choices", None)
+    if not isinstance(choices, list) or not choices:
+        raise MalformedCompletion("no choices in the response")
+    content = getattr(getattr(choices[0], "message", None), "content", None)
+    if content is not None and not isinstance(content, str):
+        raise MalformedCompletion(f"message content is a JSON {type(content).__name__}, not text")
+    return _server_text(content)
 
 
 class OpenAIBackend(Backend):
@@ -57,6 +88,8 @@ class OpenAIBackend(Backend):
     ) -> None:
         if concurrency < 1:
             raise BackendError(f"concurrency must be >= 1, got {concurrency}")
+        if not (math.isfinite(timeout_s) and timeout_s > 0):  # the socket layer would raise deep inside a request
+            raise BackendError(f"timeout must be a positive number of seconds, got {timeout_s}")
         if not api_key_env.replace("_", "").isalnum():
             raise BackendError(f"api_key_env must be an environment variable name, got {api_key_env!r}")
         self.model = model
@@ -146,12 +179,13 @@ class OpenAIBackend(Backend):
             t0 = time.perf_counter()
             try:
                 resp = self.client.chat.completions.create(**body)
-                text = resp.choices[0].message.content or ""
-            except (json.JSONDecodeError, openai.APIResponseValidationError, IndexError, AttributeError) as exc:
+                text = _completion_text(resp)
+            except (json.JSONDecodeError, openai.APIResponseValidationError, MalformedCompletion) as exc:
                 # a 200 whose body is not a chat completion: the SDK does not retry these
                 if attempt == attempts:
+                    what = str(exc) if isinstance(exc, MalformedCompletion) else type(exc).__name__
                     raise BackendError(
-                        f"{where} kept answering with malformed responses ({attempts} tries): {type(exc).__name__}"
+                        f"{where} kept answering with malformed responses ({attempts} tries): {what}"
                     ) from None
                 delay = min(self.backoff_s * 2 ** (attempt - 1), 8.0) * (1 - 0.25 * random.random())
                 log.info("malformed response from %s, retrying in %.2f s (%d of %d)", where, delay, attempt, attempts)
@@ -186,13 +220,13 @@ class OpenAIBackend(Backend):
             meta = AnswerMeta(
                 **self.identity(),
                 device="remote",
-                prompt_tokens=int(getattr(usage, "prompt_tokens", 0) or 0),
-                completion_tokens=int(getattr(usage, "completion_tokens", 0) or 0),
+                prompt_tokens=_count(getattr(usage, "prompt_tokens", 0)),
+                completion_tokens=_count(getattr(usage, "completion_tokens", 0)),
                 latency_s=latency,
                 extra={
-                    "response_model": str(resp.model or ""),
-                    "system_fingerprint": str(resp.system_fingerprint or ""),
-                    "finish_reason": str(resp.choices[0].finish_reason or ""),
+                    "response_model": _server_text(getattr(resp, "model", "")),
+                    "system_fingerprint": _server_text(getattr(resp, "system_fingerprint", "")),
+                    "finish_reason": _server_text(getattr(resp.choices[0], "finish_reason", "")),
                     "malformed_retries": attempt - 1,
                 },
             )
