@@ -8,9 +8,8 @@ request's Authorization header back, a second live run from the cache, a run tha
 echoing the key in every error (the traceback is printed: --debug), a cassette export, and ``vlmproprio
 score`` with its embedding cache. Then every file under the sandbox (run directory, response cache, its
 SQLite database and WAL, the values inside it decompressed, the cassette, the manifest, scores, the
-embedding cache, HOME, TMPDIR) and every captured stdout/stderr is searched for the key and for pieces of it.
-
-The HTML report joins this check once vlmproprio.report exists: test_secret_absent_from_html_report.
+embedding cache, HOME, TMPDIR) and every captured stdout/stderr is searched for the key and for pieces of it;
+then the run's HTML report (page, Markdown, figures) is written and searched too.
 """
 
 from __future__ import annotations
@@ -163,9 +162,10 @@ def test_secret_never_written_to_any_file_or_console(secret_run, figures):
 
 
 def test_secret_absent_from_html_report(secret_run):
-    """The lead's hook for the HTML report: writes the report of the secret run and searches it too."""
-    report = pytest.importorskip("vlmproprio.report", reason="the HTML report module is not merged on this branch")
-    index = Path(report.write_report(secret_run["run_dir"]))
+    """The report of the secret run (captions, run settings, server URL on the page) is searched too."""
+    from vlmproprio.report import write_report
+
+    index = write_report(secret_run["run_dir"])
     assert index.is_file()
     files = all_files(secret_run["run_dir"])
     assert any(p.suffix == ".html" for p in files)

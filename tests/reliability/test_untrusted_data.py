@@ -9,16 +9,14 @@
 * Dynamic: live pickles planted where a person or a damaged disk could put them (a response-cache value
   and key, an embedding-cache row, an object array in steps.npz) are refused with a clear message and never
   run: each payload would create a marker file when unpickled, and no marker appears.
-
-The HTML report's escaping of caption text joins this module once vlmproprio.report exists:
-test_report_renders_html_in_captions_as_text.
+* The HTML report: a model answer full of markup (``<script>``, an ``<img onerror>``) reaches the
+  transcripts verbatim and comes out of ``vlmproprio report`` as text, never as markup.
 """
 
 from __future__ import annotations
 
 import ast
 import io
-import json
 import pickle
 import sqlite3
 import zipfile
@@ -238,8 +236,7 @@ def test_an_object_array_in_steps_npz_is_refused(tmp_path, figures):
 
 
 def test_report_renders_html_in_captions_as_text(tmp_path):
-    """The lead's hook for the HTML report: captions with markup must come out escaped."""
-    report = pytest.importorskip("vlmproprio.report", reason="the HTML report module is not merged on this branch")
+    """Captions with markup, scored and reported by the CLI as a user would: the page shows them as text."""
     from vlmproprio.testing.openai_server import FakeOpenAIServer
 
     pytest.importorskip("openai", reason="the run goes through the openai backend")
@@ -250,8 +247,10 @@ def test_report_renders_html_in_captions_as_text(tmp_path):
         args += ["--conditions", "none", "--frame-stride", "3", "--no-progress", "--out", tmp_path / "run"]
         proc = cli([*args, "--cache-dir", tmp_path / "cache"])
     assert proc.returncode == 0, proc.stderr
-    assert any(evil in json.dumps(t, ensure_ascii=False) for t in transcripts_of(tmp_path / "run").values())
-    index = Path(report.write_report(tmp_path / "run"))
-    pages = [p.read_text(encoding="utf-8") for p in index.parent.rglob("*.html")]
+    captions = [f["text"] for t in transcripts_of(tmp_path / "run").values() for f in t["frames"]]
+    assert evil in captions  # the markup reached the transcripts verbatim: the report is what must escape it
+    proc = cli(["report", tmp_path / "run"], timeout=300)  # scores the run first (the default encoder)
+    assert proc.returncode == 0, proc.stderr
+    pages = [p.read_text(encoding="utf-8") for p in (tmp_path / "run" / "report").rglob("*.html")]
     assert pages and not any("<script>alert" in page or "<img src=x" in page for page in pages)
     assert any("&lt;script&gt;" in page for page in pages)
