@@ -30,10 +30,12 @@ from _common import FIXTURES, ROOT, emit, machine, table, write_json
 GB = 1e9
 
 
-def run_measured(args: list[str], log: Path, src: Path) -> dict:
+def run_measured(args: list[str], log: Path, src: Path, cache_root: Path) -> dict:
     """Run ``vlmproprio ARGS`` (the package in ``src``) in a fresh process; its wall time and peak RSS."""
     env = {
         **os.environ,
+        # a cache root of its own: "score, cold" must load the encoder, not find a developer's embeddings
+        "VLMPROPRIO_CACHE": str(cache_root),
         "PYTHONPATH": str(src),
         "OMP_NUM_THREADS": "1",
         "TOKENIZERS_PARALLELISM": "false",
@@ -59,7 +61,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--model", default="reference", help="model replayed in (a) (default: reference)")
     ap.add_argument("--live-episodes", nargs="+", default=["door_00", "bin0_00"], help="episodes for (b)")
-    ap.add_argument("--live-max-new-tokens", type=int, default=32)
+    ap.add_argument("--live-max-new-tokens", type=int, help="default: the model's own (64 for tiny-qwen2-vl)")
     ap.add_argument("--live-args", nargs="*", default=[], help="more `vlmproprio run` options for (b)")
     ap.add_argument("--src", type=Path, default=ROOT / "src", help="measure the package in this folder instead")
     ap.add_argument("--out", type=Path, help="also write the numbers as JSON here")
@@ -79,7 +81,8 @@ def main(argv=None) -> int:
                 [
                     *("run", "--model", "tiny-qwen2-vl", "--mode", "live", "--out", str(tmp / "l")),
                     *("--cache-dir", str(tmp / "cache"), "--threads", "1"),
-                    *("--max-new-tokens", str(args.live_max_new_tokens), "--episodes", *args.live_episodes),
+                    *("--episodes", *args.live_episodes),
+                    *(("--max-new-tokens", str(args.live_max_new_tokens)) if args.live_max_new_tokens else ()),
                     *args.live_args,
                 ],
             ),
@@ -87,7 +90,11 @@ def main(argv=None) -> int:
         for i, (name, target, cmd) in enumerate(steps):
             if cmd[0] == "run":
                 cmd = [*cmd, *fixtures, "--no-progress"]
-            row = {"step": name, **run_measured(cmd, tmp / f"step{i}.log", args.src), "target_gb": target}
+            row = {
+                "step": name,
+                **run_measured(cmd, tmp / f"step{i}.log", args.src, tmp / "cache-root"),
+                "target_gb": target,
+            }
             row["ok"] = row["peak_rss_gb"] <= target
             rows.append(row)
             emit({"what": "memory", "command": "vlmproprio " + " ".join(cmd), **row})
