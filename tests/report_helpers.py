@@ -62,5 +62,5 @@ def add_model(run: Path, source: str, model: str, final_of: dict[str, str]) -> N
             t.final = other.final
         write_transcript(run, t)
     manifest = json.loads((run / "run.json").read_text())
-    manifest["models"] = [*manifest["models"], model]
+    manifest["models"] = [*manifest["models"], {"name": model, "slug": model, "pipeline": {"prompt_version": "test"}}]
     (run / "run.json").write_text(json.dumps(manifest, indent=1) + "\n")

@@ -285,7 +285,8 @@ def write_synthetic_run(
                 final_status="ok",
             )
             write_transcript(run_dir, t)
-    manifest = {"fixtures": str(fixtures), "models": [model], "conditions": list(conditions), "episodes": ids}
+    entry = {"name": model, "slug": model, "pipeline": {"prompt_version": "test"}}  # as the runner writes it
+    manifest = {"fixtures": str(fixtures), "models": [entry], "conditions": list(conditions), "episodes": ids}
     (run_dir / "run.json").write_text(json.dumps(manifest, indent=1) + "\n")
     return ids
 

@@ -74,6 +74,7 @@ def test_report_folder_has_page_markdown_plots_and_thumbnails(run, page):
 def test_markdown_tables_show_the_scores(run, page):
     md = (page[0].parent / "report.md").read_text(encoding="utf-8")
     scores = load_run_scores(run[0])
+    assert "prompt version: test" in md  # read from the model's pipeline settings in run.json
     # the template captions: with state every item is right, without it the trajectory is never mentioned
     both = _md_row(md, "synthetic", "all", "both")
     none = _md_row(md, "synthetic", "all", "none")

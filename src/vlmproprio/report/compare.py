@@ -90,7 +90,7 @@ def _settings_notes(a: RunScores, b: RunScores) -> list[str]:
         ("sentence encoder", lambda s: s.meta.get("encoder", {}).get("key")),
         ("lexicons", lambda s: {k: v.get("sha256") for k, v in s.meta.get("lexicons", {}).items()}),
         ("segmentation threshold", lambda s: s.threshold),
-        ("prompt version", lambda s: s.manifest.get("pipeline", {}).get("prompt_version")),
+        ("prompt version", lambda s: s.prompt_version),
     )
     for what, get in checks:
         va, vb = get(a), get(b)

@@ -57,6 +57,14 @@ class RunScores:
             (a for a in self.aggregate if (a["model"], a["task"], a["condition"]) == (model, task, condition)), None
         )
 
+    @property
+    def prompt_version(self) -> str | None:
+        """The models' prompt versions ("paper-1"; several joined by ", "), None if run.json names none."""
+        models = [m for m in self.manifest.get("models", []) if isinstance(m, dict)]
+        found = {m.get("pipeline", {}).get("prompt_version") for m in models}
+        found.add(self.manifest.get("pipeline", {}).get("prompt_version"))  # run.json before per-model settings
+        return ", ".join(sorted(v for v in found if v)) or None
+
     def model_identity(self, model: str) -> dict:
         for m in self.manifest.get("models", []):
             if isinstance(m, dict) and model in (m.get("slug"), m.get("name")):

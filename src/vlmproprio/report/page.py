@@ -391,7 +391,7 @@ def run_facts(s: RunScores) -> list[tuple[str, str]]:
         ("transcripts", str(len(s.rows))),
         ("mode", str(m.get("mode", "?"))),
         ("status", str(m.get("status", "?"))),
-        ("prompt version", str(m.get("pipeline", {}).get("prompt_version", "?"))),
+        ("prompt version", s.prompt_version or "?"),
         ("sentence encoder", f"{enc.get('name', '?')} ({enc.get('dim', '?')}-d)"),
         ("threshold", f"{s.threshold:g}"),
         ("code revision", str(m.get("git_revision") or "?")),

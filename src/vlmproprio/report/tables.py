@@ -312,7 +312,7 @@ def markdown_report(s: RunScores, tables: Sequence[Table], plots: Sequence[tuple
         f"- models: {', '.join(s.models)}",
         f"- episodes: {len(s.episodes)} ({', '.join(f'{TASK_LABELS.get(t, t)}: {sum(1 for e in s.episodes if s.task_of(e) == t)}' for t in s.tasks())})",
         f"- conditions: {', '.join(s.conditions)}",
-        f"- mode: {m.get('mode', '?')}, prompt version: {m.get('pipeline', {}).get('prompt_version', '?')}",
+        f"- mode: {m.get('mode', '?')}, prompt version: {s.prompt_version or '?'}",
         f"- sentence encoder: {enc.get('name', '?')} ({enc.get('dim', '?')}-d), threshold {s.threshold:g}",
         "",
     ]
