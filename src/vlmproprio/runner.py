@@ -133,14 +133,6 @@ def _write_run_file(plan: RunPlan, episodes: list[Episode], runs: list[ModelRun]
     atomic_write_text(plan.out / RUN_FILE, json.dumps(doc, indent=1) + "\n")
 
 
-def read_run_file(run_dir: Path) -> dict:
-    path = Path(run_dir) / RUN_FILE
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise UsageError(f"{path}: not a run directory ({exc}); create one with `vlmproprio run`") from exc
-
-
 def run_model(name: str, plan: RunPlan, episodes: list[Episode], peers: list[Episode], settings) -> ModelRun:
     from vlmproprio.backends.registry import cassette_path, create_backend, model_slug
     from vlmproprio.cache import CachedBackend, ResponseCache, default_cache_dir
