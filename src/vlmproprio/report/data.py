@@ -65,6 +65,12 @@ class RunScores:
         found.add(self.manifest.get("pipeline", {}).get("prompt_version"))  # run.json before per-model settings
         return ", ".join(sorted(v for v in found if v)) or None
 
+    @property
+    def paired_metrics(self) -> list[str]:
+        """The metrics scoring compared pairwise, in its order (scores meta; else as the paired rows name them)."""
+        listed = self.meta.get("stats", {}).get("metrics")
+        return list(listed) if listed else list(dict.fromkeys(r["metric"] for r in self.paired))
+
     def model_identity(self, model: str) -> dict:
         for m in self.manifest.get("models", []):
             if isinstance(m, dict) and model in (m.get("slug"), m.get("name")):

@@ -56,16 +56,6 @@ SEGMENTATION_COLUMNS = (
     "seg_edit",
     "frames_missing",
 )
-PAIRED_CAPTION_METRICS = (
-    "final_object_correct",
-    "final_action_correct",
-    "final_trajectory_mentioned",
-    "final_trajectory_correct",
-    "final_all_correct",
-    "final_words",
-    "final_hits_per_word",
-)
-PAIRED_SEGMENTATION_METRICS = ("seg_points", "seg_f1_tol1", "seg_edit")
 
 
 # ---------------------------------------------------------------------------------------------- formatting
@@ -278,11 +268,14 @@ def paired_table(
 
 
 def report_tables(s: RunScores) -> list[Table]:
+    # the metrics scoring paired (evaluation.PAIRED_METRICS, recorded in the scores), not a copy to keep in step
+    caption_metrics = [m for m in s.paired_metrics if m.startswith("final_")]
+    segmentation_metrics = [m for m in s.paired_metrics if m.startswith("seg_")]
     return [
         caption_table(s),
         segmentation_table(s),
-        paired_table(s, PAIRED_CAPTION_METRICS, "Paired differences: final captions", "paired-captions"),
-        paired_table(s, PAIRED_SEGMENTATION_METRICS, "Paired differences: segmentation", "paired-segmentation"),
+        paired_table(s, caption_metrics, "Paired differences: final captions", "paired-captions"),
+        paired_table(s, segmentation_metrics, "Paired differences: segmentation", "paired-segmentation"),
     ]
 
 
