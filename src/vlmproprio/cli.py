@@ -15,6 +15,7 @@ from pathlib import Path
 from vlmproprio.errors import UsageError, VlmproprioError
 
 DEFAULT_FIXTURES = Path("fixtures")
+RESPONSE_CACHE_HELP = "response cache folder (default: $VLMPROPRIO_CACHE/responses, else ./.vlmproprio-cache/responses)"
 
 EPILOG = """\
 typical use:
@@ -349,7 +350,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--cache-dir",
         type=Path,
-        help="response cache (default: $VLMPROPRIO_CACHE/responses, else ./.vlmproprio-cache/responses)",
+        help=RESPONSE_CACHE_HELP,
     )
     p.add_argument("--report", action="store_true", help="also score the run and write its report")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -397,7 +398,7 @@ def build_parser() -> argparse.ArgumentParser:
     pe.add_argument(
         "--cache",
         type=Path,
-        help="response cache folder (default: $VLMPROPRIO_CACHE/responses, else ./.vlmproprio-cache/responses)",
+        help=RESPONSE_CACHE_HELP,
     )
     pe.add_argument("--cassette-dir", type=Path, default=Path("fixtures/responses"))
     pe.add_argument("--out", type=Path, help="cassette file (default: <cassette-dir>/<model slug>.jsonl)")
@@ -408,7 +409,7 @@ def build_parser() -> argparse.ArgumentParser:
     pi.add_argument(
         "--cache",
         type=Path,
-        help="response cache folder (default: $VLMPROPRIO_CACHE/responses, else ./.vlmproprio-cache/responses)",
+        help=RESPONSE_CACHE_HELP,
     )
     pi.set_defaults(func=cmd_cassette)
 
