@@ -19,7 +19,7 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from _common import FIXTURES, ROOT, emit, machine, table, write_json
 
 DRIVER = r"""
 import json, sys, time
@@ -48,7 +48,7 @@ def measure(model: str, cache_root: Path, out: Path) -> dict:
     env = {**os.environ, "VLMPROPRIO_CACHE": str(cache_root), "PYTHONPATH": str(ROOT / "src")}
     t = time.perf_counter()
     proc = subprocess.run(
-        [sys.executable, "-c", DRIVER, model, str(out), str(ROOT / "fixtures")],
+        [sys.executable, "-c", DRIVER, model, str(out), str(FIXTURES)],
         capture_output=True,
         text=True,
         env=env,
@@ -62,24 +62,36 @@ def measure(model: str, cache_root: Path, out: Path) -> dict:
     return res
 
 
-def main() -> None:
+def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--model", action="append", help="default: tiny-qwen2-vl and reference")
     ap.add_argument("--repeat", type=int, default=2, help="warm runs per model (default 2)")
-    args = ap.parse_args()
-    print(f"{'model':<16}{'run':<6}{'wall s':>8}{'import':>8}{'replay':>8}{'score':>8}{'embedded':>10}  heavy imports")
+    ap.add_argument("--out", type=Path, help="also write the numbers as JSON here")
+    args = ap.parse_args(argv)
+    emit({"what": "machine", **machine()})
+    rows = []
     for model in args.model or ["tiny-qwen2-vl", "reference"]:
         with tempfile.TemporaryDirectory() as tmp:
             cache = Path(tmp) / "cache"
             for i in range(1 + args.repeat):
                 r = measure(model, cache, Path(tmp) / f"run{i}")
-                e = r["embeddings"]
-                print(
-                    f"{model:<16}{'cold' if i == 0 else 'warm':<6}{r['wall_s']:>8.2f}{r['import_s']:>8.2f}"
-                    f"{r['run_s']:>8.2f}{r['score_s']:>8.2f}{e['computed']:>10}  {', '.join(r['heavy']) or '-'}",
-                    flush=True,
-                )
+                row = {
+                    "model": model,
+                    "run": "cold" if i == 0 else "warm",
+                    "wall_s": r["wall_s"],
+                    "import_s": r["import_s"],
+                    "replay_s": r["run_s"],
+                    "score_s": r["score_s"],
+                    "embedded": r["embeddings"]["computed"],
+                    "heavy_imports": ", ".join(r["heavy"]) or "-",
+                }
+                rows.append(row)
+                emit({"what": "replay", **row, "score_timing": r["score_timing"]})
+    print()
+    print(table(rows, ["model", "run", "wall_s", "import_s", "replay_s", "score_s", "embedded", "heavy_imports"]))
+    write_json(args.out, {"machine": machine(), "rows": rows})
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())
