@@ -27,7 +27,7 @@ STAGES: list[tuple[str, ...]] = [
     ("runner",),
     ("scoring", "embeddings", "segmentation"),
     ("stats",),
-    ("evaluation",),
+    ("evaluation", "sidecars"),
     ("report",),
     ("cli", "pytest_plugin"),
 ]

@@ -96,10 +96,67 @@ def cmd_cassette(args: argparse.Namespace) -> int:
             path, n = export_cassette(cache, model_slug(args.model), path, merge=not args.replace)
             manifest = register_fixture_file(path)
             print(f"wrote {n} answers of {args.model} to {path}" + (f" (updated {manifest})" if manifest else ""))
+            if not args.no_embed:
+                _embed_exported(args.model, path)
         else:
             model, n = import_cassette(cache, args.cassette)
             print(f"imported {n} new answers of {model} from {args.cassette} into {cache_dir}")
     return 0
+
+
+def _print_sidecar(model: str, build) -> None:
+    print(
+        f"wrote the embeddings of {build.texts} captions of {model} ({build.computed} computed now) to {build.path}"
+        + (f" (updated {build.manifest})" if build.manifest else "")
+    )
+
+
+def _embed_exported(model: str, cassette: Path) -> None:
+    """Store the exported cassette's caption embeddings beside it, when it lies in a fixture folder's responses/."""
+    from vlmproprio.embeddings import encoder_spec
+    from vlmproprio.sidecars import benchmark_caption_texts, build_sidecar
+
+    fixtures = cassette.resolve().parent.parent
+    if cassette.resolve().parent.name != "responses" or not (fixtures / "episodes").is_dir():
+        print(f"no embeddings sidecar: {cassette} is not in a fixture folder's responses/")
+        return
+    try:
+        texts = benchmark_caption_texts(model, fixtures)
+        _print_sidecar(model, build_sidecar(model, fixtures, encoder_spec(), texts))
+    except VlmproprioError as exc:
+        print(f"no embeddings sidecar ({exc}); build it with `vlmproprio cassette embed --model {model} --run-dir RUN`")
+
+
+def cmd_cassette_embed(args: argparse.Namespace) -> int:
+    from vlmproprio.backends.registry import model_slug
+    from vlmproprio.embeddings import encoder_spec
+    from vlmproprio.sidecars import benchmark_caption_texts, build_sidecar, run_caption_texts
+
+    spec = encoder_spec(args.encoder, batch_size=args.encoder_batch_size)
+    if args.run_dir:
+        texts = set().union(*(run_caption_texts(r, args.fixtures, model_slug(args.model)) for r in args.run_dir))
+    else:
+        texts = benchmark_caption_texts(args.model, args.fixtures, progress=not args.no_progress)
+    build = build_sidecar(
+        args.model, args.fixtures, spec, texts, merge=args.merge, embedding_cache=args.embedding_cache
+    )
+    _print_sidecar(args.model, build)
+    return 0
+
+
+def _embed_recorded(runs, run_dir: Path, fixtures: Path) -> None:
+    """After recording: add the new captions' embeddings to each recorded model's sidecar."""
+    from vlmproprio.embeddings import default_encoder_installed, encoder_spec
+    from vlmproprio.sidecars import build_sidecar, run_caption_texts
+
+    for r in runs:
+        if r.mode != "record":
+            continue
+        if not default_encoder_installed():
+            print(f"no embeddings sidecar for {r.name}: the encoder is not installed (pip install 'vlmproprio[embed]')")
+            continue
+        texts = run_caption_texts(run_dir, fixtures, r.slug)
+        _print_sidecar(r.name, build_sidecar(r.name, fixtures, encoder_spec(), texts, merge=True))
 
 
 def cmd_models(args: argparse.Namespace) -> int:
@@ -149,6 +206,8 @@ def cmd_run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
     )
     runs = run(plan)
+    if args.mode == "record":
+        _embed_recorded(runs, plan.out, plan.fixtures)
     for r in runs:
         s = r.stats
         print(
@@ -220,10 +279,20 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_score(args: argparse.Namespace) -> int:
-    from vlmproprio.embeddings import encoder_spec
+    from vlmproprio.embeddings import DEFAULT_BATCH_SIZE, DEFAULT_THREADS, encoder_spec
     from vlmproprio.evaluation import score_run
 
-    spec = encoder_spec(args.encoder, batch_size=args.encoder_batch_size, threads=args.encoder_threads)
+    default = (args.encoder, args.encoder_batch_size, args.encoder_threads) == (
+        None,
+        DEFAULT_BATCH_SIZE,
+        DEFAULT_THREADS,
+    )
+    # the default encoder is resolved by score_run: from its package, or (torch-free) from the models' sidecars
+    spec = (
+        None
+        if default
+        else encoder_spec(args.encoder, batch_size=args.encoder_batch_size, threads=args.encoder_threads)
+    )
     tables = score_run(
         args.run_dir,
         fixtures=args.fixtures,
@@ -235,7 +304,7 @@ def cmd_score(args: argparse.Namespace) -> int:
     e = t["embeddings"]
     print(
         f"scored {len(tables.rows)} transcripts into {args.run_dir / 'scores'} in {t['total_s']:.1f} s "
-        f"(embeddings: {e['cached']} cached, {e['computed']} computed)"
+        f"(embeddings: {e['sidecar']} from sidecars, {e['cached']} cached, {e['computed']} computed)"
     )
     return 0
 
@@ -403,6 +472,9 @@ def build_parser() -> argparse.ArgumentParser:
     pe.add_argument("--cassette-dir", type=Path, default=Path("fixtures/responses"))
     pe.add_argument("--out", type=Path, help="cassette file (default: <cassette-dir>/<model slug>.jsonl)")
     pe.add_argument("--replace", action="store_true", help="start the cassette anew instead of merging")
+    pe.add_argument(
+        "--no-embed", action="store_true", help="do not (re)build the embeddings sidecar beside the cassette"
+    )
     pe.set_defaults(func=cmd_cassette)
     pi = csub.add_parser("import", help="cassette -> response cache")
     pi.add_argument("cassette", type=Path, help="a .jsonl cassette")
@@ -412,6 +484,29 @@ def build_parser() -> argparse.ArgumentParser:
         help=RESPONSE_CACHE_HELP,
     )
     pi.set_defaults(func=cmd_cassette)
+    pm = csub.add_parser(
+        "embed",
+        help="(re)build <fixtures>/responses/<model>.embeddings.npz: the model's caption embeddings",
+        description="Replay the model (its cassette; the reference captioner computes its answers) over every "
+        "episode and condition of the fixtures, embed every frame caption scoring uses, and store the vectors "
+        "beside the cassette (updating the manifest), so that scoring the replay needs no torch. Needs the "
+        "encoder (the [embed] extra).",
+    )
+    pm.add_argument("--model", required=True, help="model name (a cassette in <fixtures>/responses/, or reference)")
+    _add_fixtures(pm)
+    pm.add_argument(
+        "--run-dir",
+        type=Path,
+        action="append",
+        metavar="RUN_DIR",
+        help="take the captions from this run instead of a replay of the whole benchmark (repeatable)",
+    )
+    pm.add_argument("--merge", action="store_true", help="add to the encoder's stored vectors instead of replacing")
+    pm.add_argument("--encoder", default=None, metavar="PATH", help="local sentence-transformers folder")
+    pm.add_argument("--encoder-batch-size", type=int, default=8, help="fixed encoder batch size (default 8)")
+    pm.add_argument("--embedding-cache", type=Path, default=None, help="embedding cache folder (as for score)")
+    pm.add_argument("--no-progress", action="store_true", help="no progress bar")
+    pm.set_defaults(func=cmd_cassette_embed)
 
     p = sub.add_parser(
         "score",

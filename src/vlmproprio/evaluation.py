@@ -307,6 +307,7 @@ def score_run(
     verify: bool = True,
     write: bool = True,
     judge=None,
+    sidecars: Sequence[str | Path] | None = None,
 ) -> ScoreTables:
     """Score every transcript of a run and (by default) write RUN_DIR/scores/.
 
@@ -314,8 +315,17 @@ def score_run(
     in ``embedding_cache`` (default <cache root>/embeddings, shared by every run: its entries are keyed
     by encoder and text), so re-scoring a run needs no torch. ``judge`` (off by
     default) is any vlmproprio Backend that also grades the final captions; its agreement with the rubric
-    goes to scores/judge.json."""
-    from vlmproprio.embeddings import CachedEmbedder, EmbeddingStore, encoder_spec
+    goes to scores/judge.json. Frame-caption vectors are read first from ``sidecars`` (default: the
+    ``<fixtures>/responses/<model>.embeddings.npz`` of the run's models; ``()``: none), so a replayed
+    cassette is scored without loading the encoder."""
+    from vlmproprio.embeddings import (
+        CachedEmbedder,
+        EmbeddingStore,
+        load_sidecars,
+        read_sidecar,
+        resolve_encoder,
+        sidecar_vectors,
+    )
 
     t_start = time.perf_counter()
     run_dir = Path(run_dir)
@@ -333,7 +343,11 @@ def score_run(
     conds = condition_order([t.condition for t in transcripts])
     t_loaded = time.perf_counter()
 
-    spec = encoder if encoder is not None else encoder_spec()
+    if sidecars is None:
+        stored = load_sidecars(root / "responses", {t.model for t in transcripts})
+    else:
+        stored = [read_sidecar(p) for p in sidecars]
+    spec = encoder if encoder is not None else resolve_encoder(stored)
     cache_dir = Path(embedding_cache) if embedding_cache is not None else default_embedding_dir()
     aligned = {}
     for t in transcripts:
@@ -344,7 +358,7 @@ def score_run(
         aligned[(t.model, t.episode_id, t.condition)] = frame_texts(t, len(ep.frames), where)
     all_texts = sorted({x for texts, st in aligned.values() for x, s in zip(texts, st, strict=True) if s != "missing"})
     with EmbeddingStore(cache_dir) as store:
-        embedder = CachedEmbedder(spec, store)
+        embedder = CachedEmbedder(spec, store, sidecar=sidecar_vectors(stored, spec.key))
         vectors = embedder.embed(all_texts)
     t_embedded = time.perf_counter()
 

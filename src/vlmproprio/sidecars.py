@@ -1,0 +1,130 @@
+"""A model's caption embeddings beside its cassette: which captions, embedded by which encoder, written where.
+
+A cassette's answers are fixed, so the frame captions scoring embeds are fixed too, and so are their
+vectors. ``build_sidecar`` stores them in ``<fixtures>/responses/<model slug>.embeddings.npz`` (format:
+``vlmproprio.embeddings.write_sidecar``) and updates the fixtures' manifest; ``score_run`` reads the sidecars
+of a run's models before it looks for an encoder, so replaying and scoring the benchmark needs no torch.
+
+Which captions: those of a replay run of the model over every episode and condition of the fixtures with the
+benchmark's settings (what ``pytest benchmark/`` and ``vlmproprio run --mode replay`` score), or those of
+given run folders. The ``reference`` captioner has no cassette (it is computed, deterministically, from the
+states), but its captions are as fixed as a cassette's, so it gets a sidecar the same way.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+from vlmproprio.embeddings import (
+    CachedEmbedder,
+    EmbeddingError,
+    EmbeddingStore,
+    EncoderSpec,
+    default_embedding_dir,
+    merge_sections,
+    read_sidecar,
+    sidecar_path,
+    sidecar_section,
+    write_sidecar,
+)
+from vlmproprio.episodes import load_episodes, register_fixture_file, sha256_file
+from vlmproprio.errors import VlmproprioError
+from vlmproprio.evaluation import frame_texts
+from vlmproprio.transcripts import read_transcripts
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class SidecarBuild:
+    path: Path
+    texts: int  # captions in this encoder's section now
+    computed: int  # of which the encoder computed now (the rest came from the embedding cache)
+    manifest: Path | None  # the manifest updated, if the folder above holds one
+
+
+def run_caption_texts(run_dir: str | Path, fixtures: str | Path, slug: str) -> set[str]:
+    """The frame captions of ``slug`` in a run folder that scoring embeds (present ones, as score_run reads them)."""
+    run_dir = Path(run_dir)
+    transcripts = read_transcripts(run_dir, slug)
+    if not transcripts:
+        raise VlmproprioError(f"{run_dir / 'transcripts' / slug}: no transcripts of model {slug}")
+    ids = sorted({t.episode_id for t in transcripts})
+    frames = {e.episode_id: len(e.frames) for e in load_episodes(fixtures, ids, verify=False)}
+    texts: set[str] = set()
+    for t in transcripts:
+        where = f"{run_dir}/transcripts/{t.model}/{t.episode_id}__{t.condition}.json"
+        captions, statuses = frame_texts(t, frames[t.episode_id], where)
+        texts.update(x for x, s in zip(captions, statuses, strict=True) if s != "missing")
+    return texts
+
+
+def benchmark_caption_texts(model: str, fixtures: str | Path, *, progress: bool = False) -> set[str]:
+    """The frame captions of a replay of ``model`` over every episode and condition of ``fixtures``."""
+    from vlmproprio.backends.registry import BackendSettings, model_slug
+    from vlmproprio.conditions import parse_conditions
+    from vlmproprio.runner import RunPlan, run
+
+    with tempfile.TemporaryDirectory(prefix="vlmproprio-embed-") as tmp:
+        out = Path(tmp) / "run"
+        plan = RunPlan(
+            models=(model,),
+            conditions=tuple(parse_conditions("all")),
+            fixtures=Path(fixtures),
+            out=out,
+            mode="replay",
+            backend=BackendSettings(threads=1),  # as the benchmark runs it
+            progress=progress,
+        )
+        run(plan)
+        return run_caption_texts(out, fixtures, model_slug(model))
+
+
+def _existing_sections(path: Path, merge: bool) -> dict:
+    if not path.is_file():
+        return {}
+    try:
+        return dict(read_sidecar(path).sections)
+    except EmbeddingError:
+        if merge:
+            raise
+        log.warning("%s is damaged: rebuilding it from scratch (other encoders' vectors in it are lost)", path)
+        return {}
+
+
+def build_sidecar(
+    model: str,
+    fixtures: str | Path,
+    spec: EncoderSpec,
+    texts: Iterable[str],
+    *,
+    merge: bool = False,
+    embedding_cache: str | Path | None = None,
+) -> SidecarBuild:
+    """Embed ``texts`` with ``spec`` and store them in the model's sidecar, keeping other encoders' sections.
+
+    ``merge=False`` replaces this encoder's section (a rebuild: vectors of captions the cassette no longer
+    produces go); ``merge=True`` adds to it (after recording part of the benchmark)."""
+    from vlmproprio.backends.registry import cassette_path, model_slug
+
+    slug = model_slug(model)
+    responses = Path(fixtures) / "responses"
+    path = sidecar_path(responses, slug)
+    cache_dir = Path(embedding_cache) if embedding_cache is not None else default_embedding_dir()
+    with EmbeddingStore(cache_dir) as store:
+        embedder = CachedEmbedder(spec, store)
+        vectors = embedder.embed(sorted(set(texts)))
+    section = sidecar_section(spec, vectors)
+    sections = _existing_sections(path, merge)
+    if merge and section.key in sections:
+        section = merge_sections(sections[section.key], section)
+    sections[section.key] = section
+    cassette = cassette_path(model, responses)
+    source = {"model": model, "cassette_sha256": sha256_file(cassette) if cassette.is_file() else None}
+    write_sidecar(path, slug, sections.values(), source)
+    manifest = register_fixture_file(path)
+    return SidecarBuild(path, len(section.digests), embedder.stats.computed, manifest)
