@@ -65,6 +65,16 @@ def pytest_configure(config: pytest.Config) -> None:
         _session(config)
 
 
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
+    """``-n auto`` (the project's pytest default) runs in one process when the benchmark runs a model or keeps its
+    run: each xdist worker runs the models it needs, so workers would record the same cassette or fill the same
+    run folder at once. Replay into temporary folders (the default) is safe in parallel: None leaves it to xdist."""
+    if config.getoption("vp_mode", "replay") != "replay" or config.getoption("vp_run_dir", None):
+        return 0
+    return None
+
+
 @dataclass(frozen=True)
 class CellId:
     model: str
