@@ -95,3 +95,10 @@ def vlmproprio_home(tmp_path, monkeypatch):
 
 def pytest_sessionfinish(session, exitstatus) -> None:
     shutil.rmtree(os.environ["VLMPROPRIO_CACHE"], ignore_errors=True)
+
+
+def pytest_collection_modifyitems(config, items) -> None:
+    """Modules with a slow test first (stable otherwise): under xdist (``--dist loadscope``) each module goes to
+    one worker in this order, so the long ones start at once instead of being left for the end."""
+    slow_modules = {item.module.__name__ for item in items if item.get_closest_marker("slow") and item.module}
+    items.sort(key=lambda item: 0 if item.module and item.module.__name__ in slow_modules else 1)
