@@ -268,3 +268,55 @@ def test_replay_and_score_import_no_torch(tmp_path):
         )
         assert res.returncode == 0, res.stderr[-2000:]
         assert "0 cached, 0 computed" in res.stdout, res.stdout
+
+
+def _frame_lines(body: dict) -> str:
+    """Parseable, deterministic answers: five frame lines for Process 1, a sentence otherwise."""
+    import hashlib
+
+    prompt = json.dumps(body.get("messages", []))
+    tag = hashlib.sha256(prompt.encode()).hexdigest()[:8]
+    if "# Process 1" in prompt:
+        return "\n".join(f"Frame {i}: the gripper moves toward the handle ({tag}-{i})" for i in range(1, 6))
+    return f"The robot opens the door ({tag})."
+
+
+def test_recording_and_exporting_a_cassette_store_its_caption_embeddings(real_spec, tmp_path, monkeypatch, capsys):
+    pytest.importorskip("openai", reason="the openai backend needs the [openai] extra")
+    from vlmproprio.cli import main
+    from vlmproprio.sidecars import run_caption_texts
+    from vlmproprio.testing.openai_server import FakeOpenAIServer
+
+    fx = _small_fixtures(tmp_path)
+    monkeypatch.setenv("OPENAI_API_KEY", "sk-test")
+    model, slug = "openai:fake-vlm", "openai_fake-vlm"
+    with FakeOpenAIServer(responder=_frame_lines) as server:
+        common = ["--model", model, "--base-url", server.base_url, "--fixtures", str(fx), "--episodes", "door_00"]
+        common += ["--frame-stride", "3", "--no-progress", "--cache-dir", str(tmp_path / "cache")]
+        argv = ["run", *common, "--mode", "record", "--conditions", "none"]
+        assert main([*argv, "--out", str(tmp_path / "rec")]) == 0
+    assert "wrote the embeddings of" in capsys.readouterr().out
+    sc = read_sidecar(sidecar_path(fx / "responses", slug))
+    texts = run_caption_texts(tmp_path / "rec", fx, slug)
+    assert texts and {text_digest(t) for t in texts} == set(sidecar_vectors([sc], real_spec.key))
+    assert "responses/openai_fake-vlm.embeddings.npz" in json.loads((fx / "manifest.json").read_text())["files"]
+
+    # export from the cache rebuilds it from a replay of every episode and condition; that replay misses here
+    # (only 'none' was recorded), which is said, and the recorded sidecar is left as it was
+    before = sc.path.read_bytes()
+    assert (
+        main(
+            [
+                "cassette",
+                "export",
+                "--model",
+                model,
+                "--cache",
+                str(tmp_path / "cache"),
+                "--cassette-dir",
+                str(fx / "responses"),
+            ]
+        )
+        == 0
+    )
+    assert "no embeddings sidecar" in capsys.readouterr().out and sc.path.read_bytes() == before
