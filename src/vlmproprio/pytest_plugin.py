@@ -68,9 +68,14 @@ def pytest_configure(config: pytest.Config) -> None:
 @pytest.hookimpl(optionalhook=True)
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
     """``-n auto`` (the project's pytest default) runs in one process when the benchmark runs a model or keeps its
-    run: each xdist worker runs the models it needs, so workers would record the same cassette or fill the same
-    run folder at once. Replay into temporary folders (the default) is safe in parallel: None leaves it to xdist."""
+    run (each xdist worker runs the models it needs, so workers would record the same cassette or fill the same
+    run folder at once), and when only the benchmark's folder is run (each worker would replay and score the
+    models again, which costs more than spreading the cells saves). Otherwise None leaves it to xdist."""
     if config.getoption("vp_mode", "replay") != "replay" or config.getoption("vp_run_dir", None):
+        return 0
+    bench = (Path(config.rootpath) / "benchmark").resolve()
+    paths = [Path(str(a).split("::")[0]).resolve() for a in config.args]
+    if paths and all(p == bench or bench in p.parents for p in paths):
         return 0
     return None
 
