@@ -48,18 +48,21 @@ print(json.dumps({"import_s": t_import, "run_s": t_run, "score_s": t_score, "hea
 def measure(model: str, cache_root: Path, out: Path) -> dict:
     env = {**os.environ, "VLMPROPRIO_CACHE": str(cache_root), "PYTHONPATH": str(ROOT / "src")}
     t = time.perf_counter()
-    proc = subprocess.run(
-        [sys.executable, "-c", DRIVER, model, str(out), str(FIXTURES)],
-        capture_output=True,
-        text=True,
-        env=env,
-        check=False,
-    )
-    wall = time.perf_counter() - t
+    with tempfile.TemporaryFile() as stdout, tempfile.TemporaryFile() as stderr:
+        proc = subprocess.Popen(
+            [sys.executable, "-c", DRIVER, model, str(out), str(FIXTURES)], stdout=stdout, stderr=stderr, env=env
+        )
+        # the kernel's accounting of the child: CPU seconds do not grow with other processes' load as wall time does
+        _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)
+        wall = time.perf_counter() - t
+        stdout.seek(0)
+        stderr.seek(0)
+        text, err = stdout.read().decode(), stderr.read().decode()
     if proc.returncode != 0:
-        raise SystemExit(f"{model}: the replay run failed:\n{proc.stderr[-3000:]}")
-    res = json.loads(proc.stdout.strip().splitlines()[-1])
-    res["wall_s"] = wall
+        raise SystemExit(f"{model}: the replay run failed:\n{err[-3000:]}")
+    res = json.loads(text.strip().splitlines()[-1])
+    res |= {"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime, "peak_rss_mb": usage.ru_maxrss / 1024}
     return res
 
 
@@ -80,6 +83,8 @@ def main(argv=None) -> int:
                     "model": model,
                     "run": "cold" if i == 0 else "warm",
                     "wall_s": r["wall_s"],
+                    "cpu_s": r["cpu_s"],
+                    "peak_rss_mb": r["peak_rss_mb"],
                     "import_s": r["import_s"],
                     "replay_s": r["run_s"],
                     "score_s": r["score_s"],
@@ -90,7 +95,19 @@ def main(argv=None) -> int:
                 rows.append(row)
                 emit({"what": "replay", **row, "score_timing": r["score_timing"]})
     print()
-    cols = ["model", "run", "wall_s", "import_s", "replay_s", "score_s", "embedded", "from_sidecar", "heavy_imports"]
+    cols = [
+        "model",
+        "run",
+        "wall_s",
+        "cpu_s",
+        "peak_rss_mb",
+        "import_s",
+        "replay_s",
+        "score_s",
+        "embedded",
+        "from_sidecar",
+        "heavy_imports",
+    ]
     print(table(rows, cols))
     write_json(args.out, {"machine": machine(), "rows": rows})
     return 0
