@@ -83,6 +83,7 @@ def main(argv=None) -> int:
     ap.add_argument("--live-episodes", nargs="+", default=["door_00", "bin0_00"], help="episodes for (b)")
     ap.add_argument("--live-max-new-tokens", type=int, help="default: the model's own (64 for tiny-qwen2-vl)")
     ap.add_argument("--live-args", nargs="*", default=[], help="more `vlmproprio run` options for (b)")
+    ap.add_argument("--no-live", action="store_true", help="leave out (b), the tiny model's live run")
     ap.add_argument("--src", type=Path, default=ROOT / "src", help="measure the package in this folder instead")
     ap.add_argument("--out", type=Path, help="also write the numbers as JSON here")
     args = ap.parse_args(argv)
@@ -112,6 +113,8 @@ def main(argv=None) -> int:
                 ["run", "--model", args.model, "--mode", "replay", "--out", str(tmp / "tf")],
             ),
         ]
+        if args.no_live:
+            steps = [step for step in steps if "live" not in step[0]]
         for i, (name, target, cmd) in enumerate(steps):
             if cmd[0] == "run":
                 cmd = [*cmd, *fixtures, "--no-progress"]
