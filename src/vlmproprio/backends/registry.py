@@ -29,6 +29,7 @@ from vlmproprio.errors import UsageError
 HF_PREFIX = "hf:"
 OPENAI_PREFIX = "openai:"
 TINY_PREFIX = "tiny:"
+STATE_RULES = "state-aware rules, NOT a VLM"  # the "weights" of `reference-state`, as `vlmproprio models` shows them
 DEFAULT_CASSETTE_DIR = Path("fixtures") / "responses"
 MAX_NAME_LEN = 200
 _SLUG_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}$")
@@ -42,7 +43,7 @@ class ModelNameError(UsageError):
 class ModelSpec:
     name: str
     backend: str  # "hf" | "openai" | "reference"
-    weights: str  # HF repo id or folder | OpenAI model name | "tiny:<family>" | "" (reference)
+    weights: str  # HF repo id or folder | OpenAI model name | "tiny:<family>" | "" or STATE_RULES (reference)
     description: str
     # default answer length; tiny random models write gibberish to the limit, so theirs is short
     max_new_tokens: int = 512
@@ -81,6 +82,12 @@ REGISTRY: dict[str, ModelSpec] = {
             "reference",
             "",
             "rule-based motion-primitive captions from the state numbers; NOT a VLM (a baseline)",
+        ),
+        ModelSpec(
+            "reference-state",
+            "reference",
+            STATE_RULES,
+            "rule-based, task-aware captions from the state numbers; NOT a VLM (a positive control)",
         ),
     )
 }
@@ -184,6 +191,10 @@ def create_backend(name: str, mode: str = "live", settings: BackendSettings | No
         raise UsageError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
     spec = parse_model_name(name)
     if spec.backend == "reference":
+        if spec.weights == STATE_RULES:
+            from vlmproprio.backends.reference_state import ReferenceStateBackend
+
+            return ReferenceStateBackend()  # deterministic rules, no model: the same in every mode
         from vlmproprio.backends.reference import ReferenceBackend
 
         return ReferenceBackend()  # deterministic rules, no model: the same in every mode
