@@ -26,7 +26,7 @@ STAGES: list[tuple[str, ...]] = [
     ("pipeline",),
     ("runner",),
     ("scoring", "embeddings", "segmentation"),
-    ("stats",),
+    ("stats", "power"),
     ("evaluation",),
     ("report",),
     ("cli", "pytest_plugin"),
