@@ -39,6 +39,11 @@ What it writes:
 
 So its effect is known in advance: trajectory correctness high with state, about zero without, and about
 zero with shuffled state; segmentation boundaries follow gripper and motion changes.
+
+Limits, by design: it knows only the two shipped scenes (Door and PickPlaceCereal with our bin camera; an
+imported PickPlaceCan episode looks like the bin scene and would be captioned as a cereal box); a Process-1
+frame sees only its own group's states, so a gripper change between two groups is described as the state
+after it, not as the change; with noisy states (``both_noisy``) it reads the noise as motion, as it should.
 """
 
 from __future__ import annotations
