@@ -28,7 +28,6 @@ Needs ``pip install 'vlmproprio[inspect]'`` (inspect_ai and the sentence encoder
 
 from __future__ import annotations
 
-import asyncio
 import atexit
 import base64
 import binascii
@@ -41,6 +40,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import anyio
+import anyio.to_thread
 from inspect_ai import Task, task
 from inspect_ai.dataset import MemoryDataset, Sample
 from inspect_ai.model import (
@@ -58,6 +59,7 @@ from inspect_ai.model import (
 )
 from inspect_ai.scorer import Score, Target, mean, scorer, stderr
 from inspect_ai.solver import Generate, TaskState, solver
+from inspect_ai.util import collect, span
 
 from vlmproprio import prompts
 from vlmproprio.cache import request_key
@@ -154,7 +156,10 @@ def inspect_config(g: GenerationConfig) -> GenerateConfig:
 
 
 async def _answer(model, requests: Sequence[ChatRequest]) -> list[tuple[Answer, ModelOutput]]:
-    """Ask inspect's model every request (concurrently: inspect limits connections); answers in order."""
+    """Ask inspect's model every request (concurrently: inspect limits connections); answers in order.
+
+    ``collect`` rather than asyncio.gather: it works under either of inspect's async backends (asyncio, trio)
+    and groups each call's events in the log."""
     identity = {"backend": "inspect", "model_id": str(model)}
 
     async def one(req: ChatRequest) -> tuple[Answer, ModelOutput]:
@@ -169,7 +174,7 @@ async def _answer(model, requests: Sequence[ChatRequest]) -> list[tuple[Answer, 
         )
         return Answer(out.completion, meta, key=request_key(identity, req)), out
 
-    return list(await asyncio.gather(*(one(r) for r in requests)))
+    return await collect(*(one(r) for r in requests))
 
 
 def pipeline_settings(
@@ -203,10 +208,13 @@ def paper_processes(
         images = [ImagePart(f.image_bytes()) for f in ep.frames]
         cell = CellRun(ep, cond, images, frame_states(ep, cond, list(episodes.values())), settings)
         model = get_model()
-        cell.accept_p1([a for a, _ in await _answer(model, cell.p1_requests())])
-        cell.accept_p2([a for a, _ in await _answer(model, cell.p2_requests())])
+        async with span("process 1: a caption per frame"):
+            cell.accept_p1([a for a, _ in await _answer(model, cell.p1_requests())])
+        async with span("process 2: a caption per scene"):
+            cell.accept_p2([a for a, _ in await _answer(model, cell.p2_requests())])
         p3 = cell.p3_request()
-        [(final, output)] = await _answer(model, [p3])
+        async with span("process 3: the instruction"):
+            [(final, output)] = await _answer(model, [p3])
         cell.accept_p3(final)
         transcript = cell.transcript(str(model))
         state.store.set(TRANSCRIPT_KEY, transcript.to_dict())
@@ -407,7 +415,7 @@ class VlmproprioModelAPI(ModelAPI):
         from vlmproprio.backends.registry import create_backend
 
         self.backend = create_backend(model_name, mode="live")
-        self._lock = asyncio.Lock()  # a local backend answers one batch at a time
+        self._lock = anyio.Lock()  # a local backend answers one batch at a time
 
     async def generate(self, input, tools, tool_choice, config: GenerateConfig) -> ModelOutput:
         gen = GenerationConfig(
@@ -417,7 +425,7 @@ class VlmproprioModelAPI(ModelAPI):
         )
         request = from_inspect_messages(input, gen)
         async with self._lock:
-            [answer] = await asyncio.to_thread(self.backend.generate, [request])
+            [answer] = await anyio.to_thread.run_sync(self.backend.generate, [request])
         return ModelOutput.from_content(model=self.model_name, content=answer.text)
 
     async def aclose(self) -> None:
