@@ -110,6 +110,18 @@ def test_card_declares_configs_features_license_and_citation(exported):
     assert "How it was recorded" in card.text and "robosuite" in card.text
 
 
+def test_card_says_how_imported_episodes_were_made(episodes):
+    from dataclasses import replace
+
+    from vlmproprio.dataset_export import _recording_text
+
+    door = episodes["door_00"]
+    text = _recording_text([door, replace(door, episode_id="imp_door_01", extra={"demo": "demo_1"})])
+    assert "1 episodes were driven by vlmproprio's scripted operators" in text.replace("\n", " ")
+    assert "1 episodes are robosuite/robomimic demonstrations" in text.replace("\n", " ")
+    assert "scripted" not in _recording_text([replace(door, extra={"demo": "demo_1"})])
+
+
 def test_export_is_deterministic_and_refuses_to_clobber(tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     export_dataset(FIXTURES, a, ["door_00", "bin2_01"])

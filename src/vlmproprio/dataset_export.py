@@ -24,6 +24,7 @@ from __future__ import annotations
 import json
 import shutil
 import tempfile
+import textwrap
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -218,6 +219,36 @@ def phase_columns(episodes: Sequence[Episode]) -> dict[str, list]:
 # ---------------------------------------------------------------------------------------------- card
 
 
+def _recording_text(episodes: Sequence[Episode]) -> str:
+    """How the episodes were made, from their own metadata (a fixture set may mix recorded and imported ones)."""
+    versions = "; ".join(sorted({", ".join(f"{k} {v}" for k, v in sorted(e.versions.items())) for e in episodes}))
+    sizes = ", ".join(sorted({f"{w}x{h}" for w, h in (e.image_size for e in episodes)}))
+    strides = ", ".join(str(n) for n in sorted({e.stride for e in episodes}))
+    imported = [e for e in episodes if "demo" in e.extra]  # vlmproprio.record.demos names the source demo there
+    scripted = len(episodes) - len(imported)
+    parts = [
+        f"Simulated with robosuite and MuJoCo ({versions}): a Panda arm with robosuite's default OSC_POSE "
+        f"controller at 20 Hz, rendered headless at {sizes}, one frame every {strides} sim steps from step 0 "
+        "(cameras per task in the table above)."
+    ]
+    if scripted:
+        parts.append(
+            f"{scripted} episodes were driven by vlmproprio's scripted operators, which move at a human pace and "
+            "know which subtask they are in at every step: their ground-truth phases come from the operator."
+        )
+    if imported:
+        parts.append(
+            f"{len(imported)} episodes are robosuite/robomimic demonstrations replayed by `vlmproprio import-demos` "
+            "(the source file and demo are in the episodes config's `extra`); their phases come from simulator "
+            "signals (gripper, lever and hinge angles, object height and position)."
+        )
+    parts.append(
+        "Motion directions come from the grip site's displacement over one frame interval. Every file was frozen "
+        "with a sha256 manifest; this export was read through vlmproprio's verified loader, never re-rendered."
+    )
+    return "\n".join(textwrap.wrap(" ".join(parts), width=110, break_on_hyphens=False))
+
+
 def _card_body(episodes: Sequence[Episode], counts: dict[str, int]) -> str:
     by_task: dict[str, list[Episode]] = {}
     for ep in episodes:
@@ -227,7 +258,6 @@ def _card_body(episodes: Sequence[Episode], counts: dict[str, int]) -> str:
         f"{', '.join(sorted({e.env_name for e in eps}))} |"
         for task, eps in by_task.items()
     )
-    versions = sorted({json.dumps(e.versions, sort_keys=True) for e in episodes})
     conventions = "\n".join(f"- `{k}`: {v}" for k, v in STATE_CONVENTIONS.items())
     return f"""
 # vlmproprio episodes
@@ -245,7 +275,7 @@ Segmentations for Robot Task" (2025).
 ## Configs
 
 - `frames` (default): one row per sampled frame ({counts[FRAMES]} rows): `episode_id`, `task`, `frame_index`,
-  `step` (sim step), `image` (256x256 RGB PNG, the fixture file byte for byte), `joints` (8 float64),
+  `step` (sim step), `image` (RGB PNG, the fixture file byte for byte), `joints` (8 float64),
   `ee` (6 float64), ground-truth `phase` and motion `direction`, `pixel_sha256` (sha256 of the decoded pixels
   as vlmproprio computes it).
 - `episodes`: one row per episode ({counts[EPISODES]} rows): task, environment, target object, action, an
@@ -261,13 +291,7 @@ episodes = load_dataset("path/to/this/folder", "episodes", split="test")
 
 ## How it was recorded
 
-Simulated with robosuite and MuJoCo ({"; ".join(versions)}): a Panda arm with robosuite's default OSC_POSE
-controller at 20 Hz, driven by scripted operators that move at a human pace and know which subtask they are
-in at every step. Rendered headless (MuJoCo EGL) at 256x256; one frame every {episodes[0].stride} sim steps
-from step 0. Door is filmed by robosuite's `sideview` camera; pick-and-place by a camera above and behind
-the robot where all four bin compartments are visible. Ground-truth phases come from the operator, motion
-directions from the grip site's displacement over one frame interval. Every file was frozen with a sha256
-manifest; this export was read through vlmproprio's verified loader, never re-rendered.
+{_recording_text(episodes)}
 
 State conventions:
 {conventions}
