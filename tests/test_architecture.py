@@ -29,6 +29,7 @@ STAGES: list[tuple[str, ...]] = [
     ("stats", "power"),
     ("evaluation",),
     ("report",),
+    ("dataset_export", "inspect"),
     ("cli", "pytest_plugin"),
 ]
 

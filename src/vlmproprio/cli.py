@@ -263,6 +263,14 @@ def cmd_power(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export_dataset(args: argparse.Namespace) -> int:
+    from vlmproprio.dataset_export import export_dataset
+
+    summary = export_dataset(args.fixtures, args.out, args.episodes, overwrite=args.overwrite)
+    print(summary.line())
+    return 0
+
+
 # ---------------------------------------------------------------------------------------------- parser
 
 
@@ -527,6 +535,20 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--out", type=Path, default=Path("runs") / "power", help="output folder (default runs/power)")
     p.set_defaults(func=cmd_power)
+
+    p = sub.add_parser(
+        "export-dataset",
+        help="the episodes as a Hugging Face datasets folder (Parquet + card; needs the [dataset] extra)",
+        description="Write the episodes as a Hugging Face `datasets` dataset: OUT/frames (one row per frame: "
+        "image, joints, end-effector pose, ground-truth phase and direction; the default config), OUT/episodes "
+        "and OUT/phases as Parquet, and a dataset card OUT/README.md. Load it with "
+        "datasets.load_dataset(OUT) or load_dataset(OUT, 'episodes').",
+    )
+    p.add_argument("out", type=Path, metavar="OUT", help="folder to write (must be empty or absent)")
+    _add_fixtures(p)
+    p.add_argument("--episodes", nargs="+", metavar="ID", help="export these episodes only (default: all)")
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier export in OUT")
+    p.set_defaults(func=cmd_export_dataset)
 
     return parser
 
