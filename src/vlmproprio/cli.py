@@ -130,7 +130,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             k=args.k,
             frame_stride=args.frame_stride,
             max_images_p3=args.max_images_p3,
-            prompt=PromptOptions(example=not args.no_example),
+            prompt=PromptOptions(example=not args.no_example, version=args.prompt_version),
         ),
         max_new_tokens=args.max_new_tokens,
         backend=BackendSettings(
@@ -364,6 +364,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     g.add_argument("--max-images-p3", type=int, help="cap on images in Process 3 for small-context models")
     g.add_argument("--no-example", action="store_true", help="leave the worked cube-stacking example out")
+    g.add_argument(
+        "--prompt-version",
+        choices=("suite", "paper-verbatim"),
+        default="suite",
+        help="suite (default): texts that say only what the condition sends; paper-verbatim: the paper's texts as printed",
+    )
     g.add_argument("--max-new-tokens", type=int, help="per answer (default: the model's, 512; tiny test models 64)")
     g = p.add_argument_group("local models (hf)")
     g.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N | auto (default cpu)")
