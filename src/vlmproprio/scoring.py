@@ -46,10 +46,12 @@ from __future__ import annotations
 import hashlib
 import json
 import re
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from functools import cache, lru_cache
 from importlib import resources
+from pathlib import Path
 
 import numpy as np
 
@@ -998,13 +1000,36 @@ def judge_prompt() -> dict:
     return data
 
 
+_JUDGE_WORDS = {
+    "robot_left": "to the robot's left",
+    "robot_right": "to the robot's right",
+    "left": "left in the image",
+    "right": "right in the image",
+    "forward": "forward (away from the robot)",
+    "backward": "backward (toward the robot)",
+}
+
+
 def _trajectory_truth(exp: Expectation) -> str:
-    parts = [f"{m.name}: {' and '.join(m.expected)}" for m in exp.motions if m.expected]
+    """The ground truth a judge grades the trajectory against, in words (as expectation_for derives it)."""
+
+    def words(ds: Sequence[str]) -> str:
+        return " and ".join(_JUDGE_WORDS.get(d, d) for d in ds)
+
+    parts = []
+    for m in exp.motions:
+        if m.expected:
+            text = f"{m.name}: {words(m.expected)}"
+            if m.returns:
+                text += f" (afterwards it returns {words(m.returns)})"
+            parts.append(text)
     if exp.target_row:
+        column = (exp.target_column or "").replace("_", " ")
+        side = f", {exp.image_side} in the image" if exp.image_side else ""
         parts.insert(
             0,
-            f"the object goes to the {exp.target_row} {exp.target_side} compartment of the target bin "
-            "(near/far from the robot, the robot's left/right)",
+            f"the object goes to the {exp.target_row} compartment of the target bin on the robot's "
+            f"{exp.target_side}{side} ({column} bin; near/far = from the robot)",
         )
     return "; ".join(parts) or "none"
 
@@ -1052,20 +1077,45 @@ def parse_judge_answer(raw: str) -> JudgeVerdict:
     return JudgeVerdict(items, raw)
 
 
-def judge_captions(backend, captions: Sequence[tuple[str, Episode, str]]) -> list[JudgeVerdict]:
-    """Grade (text, episode, condition) triples with any vlmproprio Backend, in its batch size, in order."""
-    from vlmproprio.backends.base import BackendError
+def judge_captions(judge, captions: Sequence[tuple[str, Episode, str]]) -> list[JudgeVerdict]:
+    """Grade (text, episode, condition) triples, in order.
 
+    ``judge`` is a ``cache.CachedBackend`` (see :func:`judge_session`): its requests go through the same
+    content-addressed response cache and cassettes as captioning, so a judge's verdicts replay
+    bit-identically. A plain Backend is wrapped in a CachedBackend without a store (same keys, batches)."""
+    from vlmproprio.backends.base import BackendError
+    from vlmproprio.cache import CachedBackend
+
+    cached = judge if isinstance(judge, CachedBackend) else CachedBackend(judge, mode="live")
     requests = [judge_request(text, ep, cond) for text, ep, cond in captions]
-    out: list[JudgeVerdict] = []
-    step = max(1, int(getattr(backend, "max_batch_size", 1)))
-    for s in range(0, len(requests), step):
-        batch = requests[s : s + step]
-        answers = backend.generate(batch)
-        if len(answers) != len(batch):
-            raise BackendError(f"judge backend answered {len(answers)} of {len(batch)} requests")
-        out.extend(parse_judge_answer(a.text) for a in answers)
-    return out
+    answers = cached.answer(requests) if requests else []
+    if len(answers) != len(requests):
+        raise BackendError(f"judge answered {len(answers)} of {len(requests)} requests")
+    return [parse_judge_answer(a.text) for a in answers]
+
+
+@contextmanager
+def judge_session(name: str, mode: str, settings, cache_dir: Path | str | None = None) -> Iterator:
+    """A judge model as captioning runs one: registry backend, response cache (none in replay, where answers
+    come only from the cassette), and in record mode the answers used written to the model's cassette
+    (``settings.cassette_dir``/<slug>.jsonl, merged with what it holds) and registered in the fixture manifest."""
+    from vlmproprio.backends.registry import cassette_path, create_backend, model_slug
+    from vlmproprio.cache import CachedBackend, ResponseCache, default_cache_dir
+    from vlmproprio.episodes import register_fixture_file
+
+    backend = create_backend(name, mode, settings)
+    cache = None if mode == "replay" else ResponseCache(cache_dir or default_cache_dir())
+    try:
+        cached = CachedBackend(backend, mode=mode, cache=cache, model=model_slug(name))
+        yield cached
+        if mode == "record" and cached.used:
+            path = cassette_path(name, settings.cassette_dir)
+            cached.export_cassette(path)
+            register_fixture_file(path)
+    finally:
+        backend.close()
+        if cache is not None:
+            cache.close()
 
 
 def _kappa(pairs: list[tuple[bool, bool]]) -> float | None:
