@@ -60,7 +60,7 @@ class RunScores:
 
     @property
     def prompt_version(self) -> str | None:
-        """The models' prompt versions ("paper-1"; several joined by ", "), None if run.json names none."""
+        """The models' prompt versions ("suite-2"; several joined by ", "), None if run.json names none."""
         models = [m for m in self.manifest.get("models", []) if isinstance(m, dict)]
         found = {m.get("pipeline", {}).get("prompt_version") for m in models}
         found.add(self.manifest.get("pipeline", {}).get("prompt_version"))  # run.json before per-model settings
