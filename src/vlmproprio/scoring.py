@@ -502,13 +502,6 @@ def directions_of(delta: np.ndarray | None, axes: Sequence[str], min_share: floa
     )
 
 
-def phase_directions(episode: Episode, phase_pattern: str, min_share: float) -> tuple[tuple[str, ...], str]:
-    """Direction values that carry at least ``min_share`` of the hand's displacement in the matching phases."""
-    delta, source = phase_displacement(episode, phase_pattern)
-    expected, _ = directions_of(delta, AXES, min_share, direction_vectors(camera_axes(episode)))
-    return expected, source
-
-
 def _image_words(cam: CameraAxes | None) -> tuple[str | None, tuple[tuple[str, str], ...]]:
     """(the image side of the robot's left, image row words -> near/far) for a camera; None/() where it does not tell."""
     if cam is None:  # the shipped convention: image left = robot left, top of the image = far from the robot
