@@ -121,3 +121,34 @@ def test_prompt_versions_name_the_set_and_enter_requests(episode):
     assert prompt_version() != "paper-1"  # the version before issue 13
     with pytest.raises(UsageError, match="prompt version"):
         PromptOptions(version="paper")
+
+
+def test_cli_run_reference_under_none_sends_no_state_words(tmp_path, monkeypatch):
+    """`vlmproprio run --model reference --conditions none`: every text the model receives, read at the backend."""
+    from vlmproprio.backends.reference import ReferenceBackend
+    from vlmproprio.cli import main
+
+    seen: list[str] = []
+    original = ReferenceBackend.generate
+
+    def spy(self, requests):
+        seen.extend(m.text for r in requests for m in r.messages)
+        return original(self, requests)
+
+    monkeypatch.setattr(ReferenceBackend, "generate", spy)
+    args = [
+        "run",
+        "--model",
+        "reference",
+        "--conditions",
+        "none",
+        "--episodes",
+        "bin1_00",
+        "--no-progress",
+        "--fixtures",
+        str(FIXTURES),
+    ]
+    assert main([*args, "--out", str(tmp_path / "run"), "--cache-dir", str(tmp_path / "cache")]) == 0
+    assert len(seen) > 10
+    for text in seen:
+        assert not STATE_WORDS.search(text), STATE_WORDS.search(text).group(0)
