@@ -8,6 +8,7 @@ Known errors print one line and exit with status 2; `--debug` shows the tracebac
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -130,7 +131,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             k=args.k,
             frame_stride=args.frame_stride,
             max_images_p3=args.max_images_p3,
-            prompt=PromptOptions(example=not args.no_example),
+            prompt=PromptOptions(example=not args.no_example, version=args.prompt_version),
         ),
         max_new_tokens=args.max_new_tokens,
         backend=BackendSettings(
@@ -224,19 +225,22 @@ def cmd_score(args: argparse.Namespace) -> int:
     from vlmproprio.evaluation import score_run
 
     spec = encoder_spec(args.encoder, batch_size=args.encoder_batch_size, threads=args.encoder_threads)
-    tables = score_run(
-        args.run_dir,
-        fixtures=args.fixtures,
-        encoder=spec,
-        embedding_cache=args.embedding_cache,
-        threshold=args.threshold,
-    )
+    score = dict(fixtures=args.fixtures, encoder=spec, embedding_cache=args.embedding_cache, threshold=args.threshold)
+    tables = _score_with_judge(args, score) if args.judge else score_run(args.run_dir, **score)
     t = tables.timing
     e = t["embeddings"]
     print(
         f"scored {len(tables.rows)} transcripts into {args.run_dir / 'scores'} in {t['total_s']:.1f} s "
         f"(embeddings: {e['cached']} cached, {e['computed']} computed)"
     )
+    if tables.judge is not None:
+        agr = tables.judge["agreement"]
+        kappas = ", ".join(
+            f"{k} {v['kappa']:.2f}" if v["kappa"] is not None else f"{k} -" for k, v in agr["items"].items()
+        )
+        print(
+            f"judge {args.judge}: {agr['n']} final captions, {agr['unparsed']} unparsed; rubric vs judge kappa: {kappas}"
+        )
     return 0
 
 
@@ -269,6 +273,25 @@ def cmd_export_dataset(args: argparse.Namespace) -> int:
     summary = export_dataset(args.fixtures, args.out, args.episodes, overwrite=args.overwrite)
     print(summary.line())
     return 0
+
+
+def _score_with_judge(args: argparse.Namespace, score: dict):
+    """score_run with a judge model whose requests go through the response cache and cassettes like captioning."""
+    from vlmproprio.backends.registry import BackendSettings
+    from vlmproprio.evaluation import resolve_fixtures, score_run
+    from vlmproprio.scoring import judge_session
+
+    manifest_path = args.run_dir / "run.json"
+    manifest = json.loads(manifest_path.read_text(encoding="utf-8")) if manifest_path.is_file() else {}
+    fixtures = resolve_fixtures(args.run_dir, manifest, args.fixtures)
+    settings = BackendSettings(
+        threads=args.judge_threads,
+        base_url=args.base_url,
+        api_key_env=args.api_key_env,
+        cassette_dir=fixtures / "responses",
+    )
+    with judge_session(args.judge, args.judge_mode, settings, args.cache_dir) as judge:
+        return score_run(args.run_dir, **score, judge=judge)
 
 
 # ---------------------------------------------------------------------------------------------- parser
@@ -395,6 +418,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     g.add_argument("--max-images-p3", type=int, help="cap on images in Process 3 for small-context models")
     g.add_argument("--no-example", action="store_true", help="leave the worked cube-stacking example out")
+    g.add_argument(
+        "--prompt-version",
+        choices=("suite", "paper-verbatim"),
+        default="suite",
+        help="suite (default): texts that say only what the condition sends; paper-verbatim: the paper's texts as printed",
+    )
     g.add_argument("--max-new-tokens", type=int, help="per answer (default: the model's, 512; tiny test models 64)")
     g = p.add_argument_group("local models (hf)")
     g.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N | auto (default cpu)")
@@ -465,6 +494,24 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="embedding cache folder (default: $VLMPROPRIO_CACHE/embeddings, else ./.vlmproprio-cache/embeddings)",
     )
+    g = p.add_argument_group("judge model (optional; the rubric stays the reference)")
+    g.add_argument(
+        "--judge",
+        metavar="MODEL",
+        help="also grade the final captions with this model (registry name, hf:, openai:); its agreement with "
+        "the rubric (Cohen's kappa) goes to scores/judge.json and the report",
+    )
+    g.add_argument(
+        "--judge-mode",
+        choices=("live", "record", "replay"),
+        default="live",
+        help="as `run --mode`: live (cache), record (also write <fixtures>/responses/<model>.jsonl), "
+        "replay (answers only from that cassette)",
+    )
+    g.add_argument("--cache-dir", type=Path, help=RESPONSE_CACHE_HELP)
+    g.add_argument("--judge-threads", type=int, default=1, help="torch threads of a local judge (default 1)")
+    g.add_argument("--base-url", help="OpenAI-compatible server URL for an openai: judge")
+    g.add_argument("--api-key-env", default="OPENAI_API_KEY", help="environment variable holding the key")
     p.set_defaults(func=cmd_score)
 
     p = sub.add_parser(

@@ -467,12 +467,13 @@ def score_run(
 
 
 def judge_table(backend, finals: list[tuple[str, CaptionScore, str, Episode, str]]) -> dict:
-    """Grade the final captions with a judge backend and compare with the rubric."""
+    """Grade the final captions with a judge (a CachedBackend, or a Backend) and compare with the rubric."""
     from vlmproprio.scoring import judge_agreement, judge_captions
 
     verdicts = judge_captions(backend, [(text, ep, cond) for _, _, text, ep, cond in finals])
+    identity = backend.identity if isinstance(getattr(backend, "identity", None), dict) else backend.identity()
     return {
-        "backend": dict(backend.identity()),
+        "backend": dict(identity),
         "agreement": judge_agreement([s for _, s, _, _, _ in finals], verdicts),
         "verdicts": {key: v.to_dict() for (key, _, _, _, _), v in zip(finals, verdicts, strict=True)},
     }

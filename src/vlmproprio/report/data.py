@@ -39,6 +39,7 @@ class RunScores:
     models: list[str] = field(default_factory=list)
     conditions: list[str] = field(default_factory=list)
     episodes: list[str] = field(default_factory=list)
+    judge: dict | None = None  # scores/judge.json, when the run was scored with --judge
 
     @property
     def threshold(self) -> float:
@@ -59,7 +60,7 @@ class RunScores:
 
     @property
     def prompt_version(self) -> str | None:
-        """The models' prompt versions ("paper-1"; several joined by ", "), None if run.json names none."""
+        """The models' prompt versions ("suite-2"; several joined by ", "), None if run.json names none."""
         models = [m for m in self.manifest.get("models", []) if isinstance(m, dict)]
         found = {m.get("pipeline", {}).get("prompt_version") for m in models}
         found.add(self.manifest.get("pipeline", {}).get("prompt_version"))  # run.json before per-model settings
@@ -130,4 +131,5 @@ def load_run_scores(run_dir: str | Path) -> RunScores:
         models=models,
         conditions=conditions or list(dict.fromkeys(r["condition"] for r in t["rows"])),
         episodes=episodes or list(dict.fromkeys(r["episode_id"] for r in t["rows"])),
+        judge=_read_json(d / "judge.json", dict) if (d / "judge.json").is_file() else None,
     )
