@@ -393,9 +393,9 @@ def door_instruction(seq: Sequence[Sample]) -> str:
         dy = sum(b.pos[1] - a.pos[1] for a, b in level)
         side = "left" if dy > 0 else "right"
         if dx <= 0:
-            parts.append(f"pull the door open toward the robot, swinging it to its {side}")
+            parts.append(f"pull the door open toward the robot, swinging it to the robot's {side}")
         else:
-            parts.append(f"push the door open away from the robot, swinging it to its {side}")
+            parts.append(f"push the door open away from the robot, swinging it to the robot's {side}")
     else:
         parts.append("open the door")
     return ", ".join(parts[:-1]) + " and " + parts[-1] + "."
