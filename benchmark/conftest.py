@@ -1,1 +1,19 @@
-"""benchmark/ is a package so that its tests can share benchmark/metrics.py."""
+"""The benchmark's pytest options, short spellings: ``pytest benchmark/ --model NAME --mode replay``.
+
+The plugin itself (vlmproprio.pytest_plugin) is registered here rather than through an entry point, so installing
+vlmproprio changes no other project's pytest; its long names (``--vlmproprio-model``) stay usable with
+``pytest -p vlmproprio.pytest_plugin`` anywhere.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from vlmproprio import pytest_plugin
+
+
+def pytest_addoption(parser: pytest.Parser, pluginmanager: pytest.PytestPluginManager) -> None:
+    # registered once: an environment with an older install (pytest11 entry point) has it already
+    if not pluginmanager.is_registered(pytest_plugin):
+        pluginmanager.register(pytest_plugin, "vlmproprio")
+    pytest_plugin.add_options(parser, short=True)

@@ -15,7 +15,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "vlmproprio"
 
 # Stage of every module (dotted, relative to vlmproprio); a module may import its own stage or earlier ones.
 STAGES: list[tuple[str, ...]] = [
-    ("errors",),
+    ("errors", "locations", "options"),
     ("primitives", "episodes", "chat"),
     ("summary", "record"),
     ("conditions",),
@@ -27,7 +27,7 @@ STAGES: list[tuple[str, ...]] = [
     ("runner",),
     ("scoring", "embeddings", "segmentation"),
     ("stats",),
-    ("evaluation",),
+    ("evaluation", "frame_table"),
     ("report",),
     ("cli", "pytest_plugin"),
 ]

@@ -89,9 +89,13 @@ def _read_json(path: Path, kind: type):
     except FileNotFoundError:
         raise ReportError(f"{path}: missing; score the run first (`vlmproprio score {path.parent.parent}`)") from None
     except (OSError, ValueError) as exc:
-        raise ReportError(f"{path}: cannot read ({exc}); re-score the run (`vlmproprio score ...`)") from exc
+        raise ReportError(
+            f"{path}: cannot read ({exc}); re-score the run (`vlmproprio score {path.parent.parent}`)"
+        ) from exc
     if not isinstance(data, kind):
-        raise ReportError(f"{path}: expected a JSON {kind.__name__}; re-score the run (`vlmproprio score ...`)")
+        raise ReportError(
+            f"{path}: expected a JSON {kind.__name__}; re-score the run (`vlmproprio score {path.parent.parent}`)"
+        )
     return data
 
 
