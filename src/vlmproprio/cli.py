@@ -335,6 +335,16 @@ def write_frames_csv(run_dir: Path, tables) -> Path:
     return write_frame_table(run_dir, tables)
 
 
+def cmd_show(args: argparse.Namespace) -> int:
+    from vlmproprio.show import format_shown, rerender
+
+    shown = rerender(args.run_dir, args.episode, args.condition, model=args.model, fixtures=args.fixtures)
+    print(format_shown(shown), end="")
+    differ = sum(not s.matches for s in shown)
+    print(f"{len(shown)} requests; {len(shown) - differ} match the keys the run recorded, {differ} differ")
+    return 0 if not differ else 1
+
+
 # ---------------------------------------------------------------------------------------------- parser
 
 
@@ -590,6 +600,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="also write the comparison as Markdown to this file")
     p.set_defaults(func=cmd_compare)
 
+    p = sub.add_parser(
+        "show",
+        help="the full prompt of every request of one episode and condition of a run",
+        description="Re-render every request (Processes 1-3) of one (episode, condition) of a run from the settings "
+        "recorded in RUN_DIR/run.json, the fixtures and the answers in the transcript, and print each message's "
+        "full text (images as their sha256). Each request's cache key is compared with the one the run recorded; "
+        "exit status 1 if any differs (the prompts or fixtures changed since).",
+    )
+    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory written by `vlmproprio run`")
+    p.add_argument("--episode", required=True, help="episode id, e.g. door_00")
+    p.add_argument("--condition", required=True, help="condition, e.g. both")
+    p.add_argument("--model", help="model name or slug (default: the run's only model)")
+    p.add_argument("--fixtures", type=Path, default=None, help="fixture folder (default: the one in RUN_DIR/run.json)")
+    p.set_defaults(func=cmd_show)
+
     return parser
 
 
@@ -605,6 +630,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("vlmproprio: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `vlmproprio show ... | head`: the reader left; not an error of ours
+        sys.stdout = None  # type: ignore[assignment]  # nothing more can be written
+        return 0
     except Exception as exc:
         if args.debug or not isinstance(exc, VlmproprioError):
             raise
