@@ -253,6 +253,7 @@ class HFBackend(Backend):
         if max_batch_tokens is not None and max_batch_tokens < 1:
             raise BackendError(f"max_batch_tokens must be >= 1, got {max_batch_tokens}")
         self.weights = resolve_weights(weights, model_id, allow_download=allow_download)
+        self.allow_download = allow_download
         self.device = device
         self.dtype = _resolve_dtype(dtype, device)
         self.attn_implementation = attn_implementation
@@ -283,7 +284,8 @@ class HFBackend(Backend):
     def load(self) -> None:
         if self.model is not None:
             return
-        os.environ.setdefault("HF_HUB_OFFLINE", "1")
+        if not self.allow_download:  # local files only, unless the user allowed the Hub
+            os.environ.setdefault("HF_HUB_OFFLINE", "1")
         import torch
         from transformers import AutoModelForImageTextToText
 
