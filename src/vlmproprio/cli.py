@@ -421,7 +421,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="import robosuite / robomimic demo.hdf5 demonstrations as episodes (needs the [record] extra)",
         description="Replay each demonstration of a robosuite or robomimic demo.hdf5 in its robosuite env, "
         "render a frame every 20 steps as the recorder does, derive states and ground truth, and write episodes "
-        "and the manifest into --out (usable as `vlmproprio run --fixtures OUT`). Tasks: door, "
+        "and the manifest into --out (usable as `vlmproprio run --model reference --fixtures OUT`). Tasks: door, "
         "pick_place_cereal, pick_place_can, lift.",
     )
     p.add_argument("file", type=Path, metavar="FILE.hdf5", help="robosuite or robomimic demo file")
@@ -544,7 +544,7 @@ def build_parser() -> argparse.ArgumentParser:
         "RUN_DIR/scores/. Frame-caption embeddings are cached in <cache root>/embeddings (see --cache-dir), so "
         "re-scoring needs no torch.",
     )
-    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory written by `vlmproprio run`")
+    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory (the --out of the run command)")
     p.add_argument("--fixtures", type=Path, default=None, help="fixture folder (default: the one in RUN_DIR/run.json)")
     p.add_argument(
         "--threshold", type=float, default=0.65, help="similarity threshold for boundaries, in [0, 1] (default 0.65)"
@@ -566,7 +566,7 @@ def build_parser() -> argparse.ArgumentParser:
         "episode's frames beside its captions with the rubric matches highlighted). Scores the run first "
         "if RUN_DIR/scores/ is missing.",
     )
-    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory written by `vlmproprio run`")
+    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory (the --out of the run command)")
     p.add_argument("--fixtures", type=Path, default=None, help="fixture folder (default: the one in RUN_DIR/run.json)")
     p.add_argument("--out", type=Path, default=None, help="report folder (default: RUN_DIR/report)")
     _add_list(
@@ -608,7 +608,7 @@ def build_parser() -> argparse.ArgumentParser:
         "full text (images as their sha256). Each request's cache key is compared with the one the run recorded; "
         "exit status 1 if any differs (the prompts or fixtures changed since).",
     )
-    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory written by `vlmproprio run`")
+    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory (the --out of the run command)")
     p.add_argument("--episode", required=True, help="episode id, e.g. door_00")
     p.add_argument("--condition", required=True, help="condition, e.g. both")
     p.add_argument("--model", help="model name or slug (default: the run's only model)")
@@ -630,7 +630,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("vlmproprio: interrupted", file=sys.stderr)
         return 130
-    except BrokenPipeError:  # `vlmproprio show ... | head`: the reader left; not an error of ours
+    except BrokenPipeError:  # e.g. show piped into head: the reader left; not an error of ours
         sys.stdout = None  # type: ignore[assignment]  # nothing more can be written
         return 0
     except Exception as exc:

@@ -328,7 +328,9 @@ def score_run(
     manifest = _read_run_manifest(run_dir)
     transcripts = read_transcripts(run_dir)
     if not transcripts:
-        raise ScoreRunError(f"{run_dir / 'transcripts'}: no transcripts (run `vlmproprio run` first)")
+        raise ScoreRunError(
+            f"{run_dir / 'transcripts'}: no transcripts (run `vlmproprio run --model NAME --out {run_dir}` first)"
+        )
     root = resolve_fixtures(run_dir, manifest, fixtures)
     ids = sorted({t.episode_id for t in transcripts})
     episodes: dict[str, Episode] = {e.episode_id: e for e in load_episodes(root, ids, verify=verify)}

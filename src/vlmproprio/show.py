@@ -1,4 +1,4 @@
-"""The full prompt of every request of one (episode, condition) of a run, re-rendered (`vlmproprio show`).
+"""The full prompt of every request of one (episode, condition) of a run, re-rendered (the show command).
 
 The response cache and the transcripts store request keys, not prompts. A prompt is a function of the
 fixtures, the condition, the pipeline settings recorded in run.json and the answers of the earlier processes
@@ -41,7 +41,9 @@ def _run_manifest(run_dir: Path) -> dict:
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise UsageError(f"{path}: missing; is {run_dir} a run directory (`vlmproprio run --out {run_dir}`)?") from None
+        raise UsageError(
+            f"{path}: missing; is {run_dir} a run directory (`vlmproprio run --model NAME --out {run_dir}`)?"
+        ) from None
     except (OSError, ValueError) as exc:
         raise UsageError(f"{path}: cannot read ({exc})") from exc
     if not isinstance(data, dict) or not isinstance(data.get("models"), list):

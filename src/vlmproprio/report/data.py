@@ -1,6 +1,6 @@
 """What a report reads: the score tables of a run (RUN_DIR/scores/), its run.json and transcripts, its episodes.
 
-Everything is read from files written by `vlmproprio run` and `vlmproprio score`; nothing is recomputed
+Everything is read from files written by the run and score commands; nothing is recomputed
 here, so a report always shows the numbers the scores hold.
 """
 
