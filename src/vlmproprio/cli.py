@@ -178,7 +178,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     fixtures = fixtures_of(args)
     models = split_list(args.model)
     if not models:
-        raise UsageError("no model given (--model NAME; see `vlmproprio models`)")
+        raise UsageError("empty model name (--model NAME; see `vlmproprio models`)")
     cache_root = cache_root_of(args)
     plan = RunPlan(
         models=tuple(models),
@@ -226,7 +226,7 @@ def answer_summary(r) -> str:
 
     hits, misses = r.stats.get("hits", 0), r.stats.get("misses", 0)
     if parse_model_name(r.name).backend == "reference":
-        return f"{hits + misses} answers computed by rules (no model)"
+        return f"{hits} answers from the response cache, {misses} computed by rules (no model)"
     if r.mode == "replay":
         return f"{misses} answers replayed from the cassette, 0 model calls"
     text = f"{hits} answers from the response cache, {misses} computed by the model"

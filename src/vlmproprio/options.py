@@ -7,6 +7,7 @@ One list syntax everywhere: a list option takes a comma list, may be repeated, o
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterable
 
 from vlmproprio.errors import UsageError
@@ -45,8 +46,8 @@ def split_list(values: str | Iterable[str] | None) -> list[str]:
     items = [values] if isinstance(values, str) else list(values)
     out: list[str] = []
     for raw in items:
-        for item in str(raw).split(","):
-            item = item.strip()
+        # spaces around commas separate ("a, b"); a value's own spaces stay, so "door_00 " is refused as a name
+        for item in re.split(r"\s*,\s*", str(raw)):
             if item and item not in out:
                 out.append(item)
     return out

@@ -201,14 +201,12 @@ def _record_hint(name: str) -> str:
 
 
 def resolve_mode(name: str, mode: str, settings: BackendSettings | None = None) -> str:
-    """``auto`` made concrete for one model: ``replay`` when it has a cassette (or needs none: reference),
-    else ``live``. Other modes are returned as they are."""
+    """``auto`` made concrete for one model: ``replay`` when it has a cassette, else ``live`` (the reference
+    captioner has none: it runs, through the response cache). Other modes are returned as they are."""
     if mode != AUTO_MODE:
         return mode
     settings = settings or BackendSettings()
-    if parse_model_name(name).backend == "reference" or cassette_path(name, settings.cassette_dir).is_file():
-        return "replay"
-    return "live"
+    return "replay" if cassette_path(name, settings.cassette_dir).is_file() else "live"
 
 
 def _check_mode(mode: str) -> None:
