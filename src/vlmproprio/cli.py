@@ -361,6 +361,7 @@ def _add_cache_dir(p: argparse.ArgumentParser) -> None:
 def _add_list(p, flag: str, help: str, metavar: str = "LIST", *, spaces: bool = False) -> None:
     """A list option: a comma list, repeatable (``spaces``: space-separated values accepted too, as before)."""
     if spaces:
+        help += "; space-separated values are accepted too"
         p.add_argument(flag, action="extend", nargs="+", metavar=metavar, help=help)
     else:
         p.add_argument(flag, action="append", metavar=metavar, help=help)
@@ -545,7 +546,7 @@ def build_parser() -> argparse.ArgumentParser:
         "re-scoring needs no torch.",
     )
     p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory (the --out of the run command)")
-    p.add_argument("--fixtures", type=Path, default=None, help="fixture folder (default: the one in RUN_DIR/run.json)")
+    _add_fixtures(p, "fixture folder (default: the one in RUN_DIR/run.json)")
     p.add_argument(
         "--threshold", type=float, default=0.65, help="similarity threshold for boundaries, in [0, 1] (default 0.65)"
     )
@@ -567,7 +568,7 @@ def build_parser() -> argparse.ArgumentParser:
         "if RUN_DIR/scores/ is missing.",
     )
     p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory (the --out of the run command)")
-    p.add_argument("--fixtures", type=Path, default=None, help="fixture folder (default: the one in RUN_DIR/run.json)")
+    _add_fixtures(p, "fixture folder (default: the one in RUN_DIR/run.json)")
     p.add_argument("--out", type=Path, default=None, help="report folder (default: RUN_DIR/report)")
     _add_list(
         p,
@@ -612,7 +613,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episode", required=True, help="episode id, e.g. door_00")
     p.add_argument("--condition", required=True, help="condition, e.g. both")
     p.add_argument("--model", help="model name or slug (default: the run's only model)")
-    p.add_argument("--fixtures", type=Path, default=None, help="fixture folder (default: the one in RUN_DIR/run.json)")
+    _add_fixtures(p, "fixture folder (default: the one in RUN_DIR/run.json)")
     p.set_defaults(func=cmd_show)
 
     return parser

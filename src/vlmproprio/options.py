@@ -34,7 +34,8 @@ MODE_HELP = (
     "record: live, then write the answers to <fixtures>/responses/<model>.jsonl"
 )
 FIXTURES_HELP = (
-    "fixture folder (default: $VLMPROPRIO_FIXTURES, else the fixtures/ of the repository the command runs in)"
+    "fixture folder (default: $VLMPROPRIO_FIXTURES, else the fixtures/ of the repository the command runs in, "
+    "else of the source checkout vlmproprio is installed from)"
 )
 CACHE_HELP = "cache root: responses/, embeddings/, models/ (default: $VLMPROPRIO_CACHE, else the user cache directory)"
 

@@ -5,7 +5,9 @@
 
 Modes (see vlmproprio.cache): ``replay`` answers only from the model's cassette in
 ``<fixtures>/responses/`` (the reference captioner needs none), ``live`` runs the model and uses and
-fills the response cache, ``record`` is live and also writes the answers it used to the cassette.
+fills the response cache, ``record`` is live and also writes the answers it used to the cassette;
+``auto`` (the CLI's and the benchmark's default) is replay for a model with a cassette, else live, decided per
+model (run.json records the mode each model ran in).
 """
 
 from __future__ import annotations
