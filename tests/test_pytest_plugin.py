@@ -57,7 +57,7 @@ def test_the_package_declares_no_pytest_entry_point() -> None:
 
 
 def test_the_benchmark_keeps_its_short_options() -> None:
-    """`pytest benchmark/ --model NAME ...` as documented: the short names come from benchmark/conftest.py."""
+    """`pytest benchmark/ --model NAME ...` as documented: the short names come from the root conftest.py."""
     import subprocess
 
     proc = subprocess.run(

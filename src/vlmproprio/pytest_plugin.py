@@ -1,7 +1,7 @@
 """pytest plugin: the benchmark as pytest tests. Inert unless asked for.
 
 Installing vlmproprio adds nothing to other projects' pytest sessions: there is no ``pytest11`` entry point.
-``benchmark/conftest.py`` loads this module and adds the short option names, so in the repository
+The repository's root ``conftest.py`` loads this module and adds the short option names, so in the repository
 ``pytest benchmark/ --model qwen2-vl`` runs the benchmark; elsewhere ``pytest -p vlmproprio.pytest_plugin``
 loads it with the namespaced names (``--vlmproprio-model`` ...). Options (the CLI's vocabulary,
 vlmproprio.options):
@@ -47,7 +47,7 @@ MODEL_FIXTURE = "bench_model"
 
 
 # Long, namespaced names only: the plugin may be loaded into sessions that define short options of their own.
-# benchmark/conftest.py adds the short spellings of the documented command `pytest benchmark/ --model NAME`.
+# the repository's conftest.py adds the short spellings of the documented command `pytest benchmark/ --model NAME`.
 OPTIONS: dict[str, dict] = {
     "model": dict(action="append", metavar="NAME", help=f"{MODEL_HELP}; default: {', '.join(DEFAULT_MODELS)}"),
     "conditions": dict(action="append", metavar="CONDS", help=CONDITIONS_HELP),
