@@ -456,8 +456,7 @@ def test_export_and_import_through_the_cli(tmp_path, capsys):
     from vlmproprio.cli import main
 
     requests = [req(text=f"# Process 2\ng{i}") for i in range(3)]
-    # --cache-dir is the cache root: the response cache is its responses/ folder
-    with ResponseCache(tmp_path / "c1" / "responses") as cache:
+    with ResponseCache(tmp_path / "c1") as cache:
         CachedBackend(EchoBackend(), mode="live", cache=cache, model="openai_echo").answer(requests)
     out = tmp_path / "responses"
     assert (
@@ -478,13 +477,22 @@ def test_export_and_import_through_the_cli(tmp_path, capsys):
     cassette = out / "openai_echo.jsonl"
     assert len(read_cassette(cassette).entries) == 3
     assert main(["cassette", "import", str(cassette), "--cache-dir", str(tmp_path / "c2")]) == 0
-    with ResponseCache(tmp_path / "c2" / "responses") as cache:
+    with ResponseCache(tmp_path / "c2") as cache:
         answers = CachedBackend(EchoBackend(), mode="replay", cache=cache).answer(requests)
     assert [a.text for a in answers] == [expected_text(r) for r in requests]
     # a model with nothing in the cache is a clean one-line error, not a traceback
     assert (
         main(
-            ["cassette", "export", "--model", "reference", "--cache-dir", str(tmp_path / "c1"), "--cassette-dir", str(out)]
+            [
+                "cassette",
+                "export",
+                "--model",
+                "reference",
+                "--cache-dir",
+                str(tmp_path / "c1"),
+                "--cassette-dir",
+                str(out),
+            ]
         )
         == 2
     )

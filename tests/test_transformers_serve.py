@@ -82,7 +82,7 @@ def _raw_answers(cache: Path, model: str) -> dict:
     from vlmproprio.backends.registry import model_slug
     from vlmproprio.cache import ResponseCache
 
-    with ResponseCache(cache / "responses") as c:
+    with ResponseCache(cache) as c:
         return {
             (e.tag["episode_id"], e.tag["condition"], e.tag["stage"], e.tag["group"]): e.text
             for e in c.entries(model_slug(model))

@@ -78,7 +78,8 @@ IDENTITY_FIELDS: tuple[str, ...] = ("backend", "model_id", "revision", "dtype", 
 STATUSES: tuple[str, ...] = ("ok", "empty")
 Mode = Literal["replay", "live", "record"]
 MODES: tuple[str, ...] = ("replay", "live", "record")
-RESPONSES_DIR = "responses"  # under the cache root
+# The response cache is the cache folder itself (its cache.db); embeddings/ and models/ sit beside that file, so
+# `--cache-dir DIR` names one folder for every cache and DIR/cache.db is where a run's answers are.
 
 
 class CacheError(VlmproprioError):
@@ -237,8 +238,8 @@ def cache_root() -> Path:
 
 
 def default_cache_dir() -> Path:
-    """The response cache: <cache root>/responses."""
-    return cache_root() / RESPONSES_DIR
+    """The response cache: the cache folder itself (see cache_root)."""
+    return cache_root()
 
 
 @functools.cache

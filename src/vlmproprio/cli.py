@@ -117,10 +117,10 @@ def cmd_make_tiny_model(args: argparse.Namespace) -> int:
 
 def cmd_cassette(args: argparse.Namespace) -> int:
     from vlmproprio.backends.registry import cassette_path, model_slug
-    from vlmproprio.cache import RESPONSES_DIR, ResponseCache, export_cassette, import_cassette
+    from vlmproprio.cache import ResponseCache, export_cassette, import_cassette
     from vlmproprio.episodes import register_fixture_file
 
-    cache_dir = cache_root_of(args) / RESPONSES_DIR
+    cache_dir = cache_root_of(args)  # the response cache is the cache folder's cache.db
     if args.action == "export":
         model_slug(args.model)  # an unsafe name is refused before anything is opened
     with ResponseCache(cache_dir) as cache:
@@ -168,7 +168,6 @@ def _check_run_ranges(args: argparse.Namespace) -> None:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from vlmproprio.backends.registry import BackendSettings
-    from vlmproprio.cache import RESPONSES_DIR
     from vlmproprio.conditions import parse_conditions
     from vlmproprio.pipeline import PipelineSettings
     from vlmproprio.prompts import PromptOptions
@@ -187,7 +186,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         out=args.out or Path("runs") / "latest",
         episode_ids=tuple(split_list(args.episodes)) or None,
         mode=args.mode,
-        cache_dir=cache_root / RESPONSES_DIR,
+        cache_dir=cache_root,
         pipeline=PipelineSettings(
             k=args.k,
             frame_stride=args.frame_stride,

@@ -4,7 +4,7 @@ Fixtures: ``--fixtures DIR``, else ``$VLMPROPRIO_FIXTURES``, else the repository
 first folder, from the current one upward, holding ``fixtures/manifest.json``), else the source checkout the
 package was installed from (an editable install). Nothing found is a one-line error saying how to point at one.
 
-Caches (model answers in ``responses/``, sentence embeddings in ``embeddings/``, tiny test models in
+Caches (model answers in the folder's ``cache.db``, sentence embeddings in ``embeddings/``, tiny test models in
 ``models/``): ``--cache-dir DIR`` where a command takes it, else ``$VLMPROPRIO_CACHE``, else the user cache
 directory (``platformdirs``: ``~/.cache/vlmproprio`` on Linux). One variable and one option for all three.
 """
@@ -24,7 +24,7 @@ APP_NAME = "vlmproprio"
 # Every environment variable vlmproprio reads, with what it does; the README lists the same (a test checks).
 ENVIRONMENT: dict[str, str] = {
     FIXTURES_ENV: "fixture folder when --fixtures is not given",
-    CACHE_ENV: "cache root (responses/, embeddings/, models/) when --cache-dir is not given",
+    CACHE_ENV: "cache folder (answers in cache.db, embeddings/, models/) when --cache-dir is not given",
     "OPENAI_API_KEY": "API key of the openai backend (another variable with --api-key-env)",
     "MUJOCO_GL": "headless OpenGL for recording: egl (default) or osmesa",
     "HF_HUB_OFFLINE": "set to 1 unless --allow-download: local weights only",

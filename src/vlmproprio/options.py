@@ -37,7 +37,10 @@ FIXTURES_HELP = (
     "fixture folder (default: $VLMPROPRIO_FIXTURES, else the fixtures/ of the repository the command runs in, "
     "else of the source checkout vlmproprio is installed from)"
 )
-CACHE_HELP = "cache root: responses/, embeddings/, models/ (default: $VLMPROPRIO_CACHE, else the user cache directory)"
+CACHE_HELP = (
+    "cache folder: model answers (cache.db), embeddings/, models/ (default: $VLMPROPRIO_CACHE, else the user "
+    "cache directory)"
+)
 
 
 def split_list(values: str | Iterable[str] | None) -> list[str]:
