@@ -15,7 +15,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "vlmproprio"
 
 # Stage of every module (dotted, relative to vlmproprio); a module may import its own stage or earlier ones.
 STAGES: list[tuple[str, ...]] = [
-    ("errors",),
+    ("errors", "locations", "options", "schemas"),
     ("primitives", "episodes", "chat"),
     ("summary", "record"),
     ("conditions",),
@@ -24,10 +24,10 @@ STAGES: list[tuple[str, ...]] = [
     ("backends", "testing"),
     ("transcripts", "parsing"),
     ("pipeline",),
-    ("runner",),
+    ("runner", "show"),
     ("scoring", "embeddings", "segmentation"),
     ("stats", "power"),
-    ("evaluation",),
+    ("evaluation", "frame_table"),
     ("report",),
     ("dataset_export", "inspect"),
     ("cli", "pytest_plugin"),

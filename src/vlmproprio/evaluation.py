@@ -307,6 +307,7 @@ def score_run(
     verify: bool = True,
     write: bool = True,
     judge=None,
+    progress: bool = False,
 ) -> ScoreTables:
     """Score every transcript of a run and (by default) write RUN_DIR/scores/.
 
@@ -314,9 +315,12 @@ def score_run(
     in ``embedding_cache`` (default <cache root>/embeddings, shared by every run: its entries are keyed
     by encoder and text), so re-scoring a run needs no torch. ``judge`` (off by
     default) is any vlmproprio Backend that also grades the final captions; its agreement with the rubric
-    goes to scores/judge.json."""
+    goes to scores/judge.json. ``progress`` shows a bar over the stages (load, embed, score, statistics, write)."""
+    from tqdm import tqdm
+
     from vlmproprio.embeddings import CachedEmbedder, EmbeddingStore, encoder_spec
 
+    bar = tqdm(total=5, desc="score: loading", unit="stage", disable=not progress or None, leave=False)
     t_start = time.perf_counter()
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -324,7 +328,9 @@ def score_run(
     manifest = _read_run_manifest(run_dir)
     transcripts = read_transcripts(run_dir)
     if not transcripts:
-        raise ScoreRunError(f"{run_dir / 'transcripts'}: no transcripts (run `vlmproprio run` first)")
+        raise ScoreRunError(
+            f"{run_dir / 'transcripts'}: no transcripts (run `vlmproprio run --model NAME --out {run_dir}` first)"
+        )
     root = resolve_fixtures(run_dir, manifest, fixtures)
     ids = sorted({t.episode_id for t in transcripts})
     episodes: dict[str, Episode] = {e.episode_id: e for e in load_episodes(root, ids, verify=verify)}
@@ -332,6 +338,8 @@ def score_run(
     episode_order = {e: i for i, e in enumerate([*run_order, *[i for i in ids if i not in run_order]])}
     conds = condition_order([t.condition for t in transcripts])
     t_loaded = time.perf_counter()
+    bar.update()
+    bar.set_description("score: embedding captions")
 
     spec = encoder if encoder is not None else encoder_spec()
     cache_dir = Path(embedding_cache) if embedding_cache is not None else default_embedding_dir()
@@ -347,6 +355,8 @@ def score_run(
         embedder = CachedEmbedder(spec, store)
         vectors = embedder.embed(all_texts)
     t_embedded = time.perf_counter()
+    bar.update()
+    bar.set_description("score: rubric and segmentation")
 
     rows, sweep_rows, audit, traces = [], [], {}, {}
     lexicons = {}
@@ -407,6 +417,8 @@ def score_run(
             "true_phases": labels,
         }
     t_scored = time.perf_counter()
+    bar.update()
+    bar.set_description("score: paired statistics")
 
     rows = _sort_rows(rows, episode_order, conds)
     sweep_rows = _sort_rows(sweep_rows, episode_order, conds)
@@ -420,6 +432,8 @@ def score_run(
     # already in a meaningful order: model, task, comparison (as listed), metric (as listed)
     paired = paired_table(rows, comps, n_boot=n_boot, n_perm=n_perm, seed=seed)
     t_stats = time.perf_counter()
+    bar.update()
+    bar.set_description("score: writing")
 
     meta = {
         "scores_version": SCORES_VERSION,
@@ -462,6 +476,8 @@ def score_run(
     tables = ScoreTables(rows, aggregate, sweep_rows, sweep_aggregate, paired, audit, traces, meta, timing, judged)
     if write:
         write_score_tables(run_dir, tables)
+    bar.update()
+    bar.close()
     tables.timing["total_s"] = time.perf_counter() - t_start
     return tables
 

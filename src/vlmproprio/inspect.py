@@ -68,11 +68,12 @@ from vlmproprio.conditions import frame_states, get_condition, parse_conditions
 from vlmproprio.episodes import Episode, load_episodes
 from vlmproprio.errors import UsageError, VlmproprioError
 from vlmproprio.evaluation import PAIRED_METRICS, score_run
+from vlmproprio.locations import resolve_fixtures
 from vlmproprio.pipeline import CellRun, PipelineSettings
 from vlmproprio.segmentation import DEFAULT_THRESHOLD, caption_present
 from vlmproprio.transcripts import Transcript, write_transcript
 
-DEFAULT_FIXTURES = "fixtures"
+DEFAULT_FIXTURES = ""  # "": --fixtures rules of the CLI ($VLMPROPRIO_FIXTURES, else the repository's)
 TRANSCRIPT_KEY = "vlmproprio.transcript"
 # The scores' own list of headline metrics (what `vlmproprio compare` pairs), split by what they measure.
 RUBRIC_METRICS = tuple(m for m in PAIRED_METRICS if m.startswith("final_"))
@@ -90,6 +91,11 @@ def _fixture_set(root: str) -> dict[str, Episode]:
     if not Path(root).is_dir():
         raise UsageError(f"fixture folder {root} not found; pass -T fixtures=PATH (a folder with a manifest.json)")
     return {ep.episode_id: ep for ep in load_episodes(Path(root))}
+
+
+def _root(fixtures: str) -> str:
+    """The fixture folder as the CLI finds it (vlmproprio.locations), never just the current folder's."""
+    return str(resolve_fixtures(fixtures or None).resolve())
 
 
 def _id_list(value: str | Sequence[str] | None) -> list[str] | None:
@@ -269,7 +275,7 @@ def suite_scores(
     """vlmproprio's scores of one transcript: ``score_run`` over a one-transcript run (memoised per process, so
     the two scorers share one computation)."""
     doc = json.dumps(transcript, sort_keys=True, ensure_ascii=False)
-    return _suite_row_cached(doc, str(Path(fixtures).resolve()), float(threshold), embedding_cache)
+    return _suite_row_cached(doc, _root(fixtures), float(threshold), embedding_cache)
 
 
 def _number(v) -> float:
@@ -327,7 +333,7 @@ def segmentation(
 
 def samples(fixtures: str, condition: str, episodes: str | Sequence[str] | None = None) -> list[Sample]:
     """One sample per (episode, condition); the target is the episode's instruction in words (for reading)."""
-    root = str(Path(fixtures).resolve())
+    root = _root(fixtures)
     known = _fixture_set(root)
     ids = _id_list(episodes) or list(known)
     unknown = [i for i in ids if i not in known]

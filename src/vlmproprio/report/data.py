@@ -1,6 +1,6 @@
 """What a report reads: the score tables of a run (RUN_DIR/scores/), its run.json and transcripts, its episodes.
 
-Everything is read from files written by `vlmproprio run` and `vlmproprio score`; nothing is recomputed
+Everything is read from files written by the run and score commands; nothing is recomputed
 here, so a report always shows the numbers the scores hold.
 """
 
@@ -90,9 +90,13 @@ def _read_json(path: Path, kind: type):
     except FileNotFoundError:
         raise ReportError(f"{path}: missing; score the run first (`vlmproprio score {path.parent.parent}`)") from None
     except (OSError, ValueError) as exc:
-        raise ReportError(f"{path}: cannot read ({exc}); re-score the run (`vlmproprio score ...`)") from exc
+        raise ReportError(
+            f"{path}: cannot read ({exc}); re-score the run (`vlmproprio score {path.parent.parent}`)"
+        ) from exc
     if not isinstance(data, kind):
-        raise ReportError(f"{path}: expected a JSON {kind.__name__}; re-score the run (`vlmproprio score ...`)")
+        raise ReportError(
+            f"{path}: expected a JSON {kind.__name__}; re-score the run (`vlmproprio score {path.parent.parent}`)"
+        )
     return data
 
 
