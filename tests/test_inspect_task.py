@@ -244,7 +244,9 @@ def test_inspect_eval_command_finds_the_task_through_the_entry_point(tmp_path):
     dist.mkdir(parents=True)
     (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: vlmproprio-inspect-entry-point\nVersion: 0\n")
     (dist / "entry_points.txt").write_text("[inspect_ai]\n" + "".join(f"{k} = {v}\n" for k, v in eps.items()))
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), str(dist.parent)]), "COLUMNS": "160"}
+    # vlmproprio itself comes from the environment (the checkout's editable install, or a wheel): with src/ on
+    # PYTHONPATH too, inspect finds the setuptools egg-info there and then no task at all
+    env = {**os.environ, "PYTHONPATH": str(dist.parent), "COLUMNS": "160"}
     inspect_cli = Path(sys.executable).with_name("inspect")
     cmd = [str(inspect_cli), "eval", "vlmproprio/proprio_captions", "-T", "condition=both", "-T", "episodes=door_03"]
     cmd += ["-T", f"fixtures={FIXTURES}", "--model", "vlmproprio/reference", "--log-dir", str(tmp_path / "logs")]

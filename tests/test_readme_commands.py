@@ -30,6 +30,7 @@ SRC = REPO / "src" / "vlmproprio"
 def shell_lines() -> list[str]:
     lines = []
     for block in re.findall(r"```bash\n(.*?)```", README, flags=re.S):
+        block = re.sub(r"\\\n\s*", " ", block)  # a command continued with a backslash is one line
         for line in block.splitlines():
             line = re.sub(r"\s+#\s.*$", "", line).strip().rstrip("&").strip()
             if line and not line.startswith("#"):

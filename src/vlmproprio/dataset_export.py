@@ -238,7 +238,7 @@ def _recording_text(episodes: Sequence[Episode]) -> str:
         )
     if imported:
         parts.append(
-            f"{len(imported)} episodes are robosuite/robomimic demonstrations replayed by `vlmproprio import-demos` "
+            f"{len(imported)} episodes are robosuite/robomimic demonstrations replayed by `vlmproprio import-demos FILE.hdf5 --out DIR` "
             "(the source file and demo are in the episodes config's `extra`); their phases come from simulator "
             "signals (gripper, lever and hinge angles, object height and position)."
         )
@@ -264,7 +264,7 @@ def _card_body(episodes: Sequence[Episode], counts: dict[str, int]) -> str:
 
 Robot episodes for the question *does giving a vision-language model the robot's proprioception (joint angles,
 end-effector pose) make its captions and subtask segmentations better?*, exported by the vlmproprio
-benchmark (`vlmproprio export-dataset`). The method and the tasks follow Suzuki,
+benchmark (`vlmproprio export-dataset OUT`). The method and the tasks follow Suzuki,
 Shimizu & Ogata, "Proprioception Enhances Vision Language Model in Generating Captions and Subtask
 Segmentations for Robot Task" (2025).
 

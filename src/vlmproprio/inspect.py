@@ -17,7 +17,7 @@ inspect_ai finds this module through the ``inspect_ai`` entry point in pyproject
   inspect's model API (so inspect's providers, retries, concurrency limits, caching and logs apply). The
   sample's Transcript is kept in its store (``vlmproprio.transcript``).
 * ``caption_rubric`` and ``segmentation``: the scorers. Both hand the transcript to
-  ``vlmproprio.evaluation.score_run`` -- the very function ``vlmproprio score`` runs -- and report its row:
+  ``vlmproprio.evaluation.score_run`` -- the very function ``vlmproprio score RUN_DIR`` runs -- and report its row:
   nothing here scores captions its own way, so a score in an inspect log equals the suite's for the same
   answers.
 * ``vlmproprio/<model>``: a model provider for inspect that answers with a vlmproprio backend
@@ -75,7 +75,7 @@ from vlmproprio.transcripts import Transcript, write_transcript
 
 DEFAULT_FIXTURES = ""  # "": --fixtures rules of the CLI ($VLMPROPRIO_FIXTURES, else the repository's)
 TRANSCRIPT_KEY = "vlmproprio.transcript"
-# The scores' own list of headline metrics (what `vlmproprio compare` pairs), split by what they measure.
+# The scores' own list of headline metrics (what `vlmproprio compare RUN_A` pairs), split by what they measure.
 RUBRIC_METRICS = tuple(m for m in PAIRED_METRICS if m.startswith("final_"))
 SEGMENTATION_METRICS = tuple(m for m in PAIRED_METRICS if m.startswith("seg_"))
 IMAGE_DATA_PREFIX = "data:"
