@@ -23,7 +23,7 @@ fi
 pip_install() { .venv/bin/python -m pip install --quiet --disable-pip-version-check "$@" 2>&1 | grep -v -e "^WARNING: Location" -e "BuildBackendWarning" -e "return '\\\\n'.join" || true; }
 pip_install "$TORCH_SPEC"
 pip_install -e ".[all,dev]"
-check="import torch, transformers, sentence_transformers, robosuite, vlmproprio"
+check="import torch, transformers, sentence_transformers, robosuite, fastapi, uvicorn, jsonschema, platformdirs, vlmproprio"
 .venv/bin/python -c "$check" >/dev/null 2>&1 \
   || { .venv/bin/python -c "$check"; echo "setup: the install is incomplete (see above)" >&2; exit 1; }
 if .venv/bin/python -c "import torchvision" 2>/dev/null; then

@@ -87,9 +87,9 @@ def tiny_qwen2vl_backend(tiny_qwen2vl_dir):
 
 @pytest.fixture
 def vlmproprio_home(tmp_path, monkeypatch):
-    """A private $VLMPROPRIO_HOME so registry tiny models are built in a temp folder."""
+    """A private cache root ($VLMPROPRIO_CACHE) so registry tiny models are built in a temp folder (models/)."""
     home = tmp_path / "home"
-    monkeypatch.setenv("VLMPROPRIO_HOME", str(home))
+    monkeypatch.setenv("VLMPROPRIO_CACHE", str(home))
     return home
 
 

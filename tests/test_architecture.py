@@ -15,7 +15,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "vlmproprio"
 
 # Stage of every module (dotted, relative to vlmproprio); a module may import its own stage or earlier ones.
 STAGES: list[tuple[str, ...]] = [
-    ("errors",),
+    ("errors", "locations", "options", "schemas"),
     ("primitives", "episodes", "chat"),
     ("summary", "record"),
     ("conditions",),
@@ -24,11 +24,12 @@ STAGES: list[tuple[str, ...]] = [
     ("backends", "testing"),
     ("transcripts", "parsing"),
     ("pipeline",),
-    ("runner",),
+    ("runner", "show"),
     ("scoring", "embeddings", "segmentation"),
-    ("stats",),
-    ("evaluation", "sidecars"),
+    ("stats", "power"),
+    ("evaluation", "frame_table", "sidecars"),
     ("report",),
+    ("dataset_export", "inspect"),
     ("cli", "pytest_plugin"),
 ]
 

@@ -32,6 +32,7 @@ def test_registry_has_the_models_the_paper_and_ci_need():
         "tiny-qwen2.5-vl": ("hf", "tiny:qwen2.5-vl"),
         "tiny-llava": ("hf", "tiny:llava"),
         "reference": ("reference", ""),
+        "reference-state": ("reference", "state-aware rules, NOT a VLM"),
     }
     for name, (backend, weights) in expect.items():
         assert (REGISTRY[name].backend, REGISTRY[name].weights) == (backend, weights)

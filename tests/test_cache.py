@@ -466,7 +466,7 @@ def test_export_and_import_through_the_cli(tmp_path, capsys):
                 "export",
                 "--model",
                 "openai:echo",
-                "--cache",
+                "--cache-dir",
                 str(tmp_path / "c1"),
                 "--cassette-dir",
                 str(out),
@@ -476,19 +476,28 @@ def test_export_and_import_through_the_cli(tmp_path, capsys):
     )
     cassette = out / "openai_echo.jsonl"
     assert len(read_cassette(cassette).entries) == 3
-    assert main(["cassette", "import", str(cassette), "--cache", str(tmp_path / "c2")]) == 0
+    assert main(["cassette", "import", str(cassette), "--cache-dir", str(tmp_path / "c2")]) == 0
     with ResponseCache(tmp_path / "c2") as cache:
         answers = CachedBackend(EchoBackend(), mode="replay", cache=cache).answer(requests)
     assert [a.text for a in answers] == [expected_text(r) for r in requests]
     # a model with nothing in the cache is a clean one-line error, not a traceback
     assert (
         main(
-            ["cassette", "export", "--model", "reference", "--cache", str(tmp_path / "c1"), "--cassette-dir", str(out)]
+            [
+                "cassette",
+                "export",
+                "--model",
+                "reference",
+                "--cache-dir",
+                str(tmp_path / "c1"),
+                "--cassette-dir",
+                str(out),
+            ]
         )
         == 2
     )
     assert "holds no answers for model 'reference' (it holds: openai_echo (3))" in capsys.readouterr().err
-    assert main(["cassette", "export", "--model", "hf:../../etc", "--cache", str(tmp_path / "c1")]) == 2
+    assert main(["cassette", "export", "--model", "hf:../../etc", "--cache-dir", str(tmp_path / "c1")]) == 2
     assert "refused" in capsys.readouterr().err
 
 

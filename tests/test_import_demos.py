@@ -21,6 +21,7 @@ pytest.importorskip("h5py", reason="importing demo files needs the [record] extr
 
 import h5py
 
+import vlmproprio
 from vlmproprio.cli import main
 from vlmproprio.episodes import load_episode, load_episodes, read_manifest
 from vlmproprio.record import demos, scenes
@@ -417,6 +418,14 @@ def test_outcome_and_metadata_of_imported_episodes(imported):
     can = load_episode(root, "imp_pick_place_can_01")
     assert (can.target_bin.index, can.task, can.target_object) == (3, "pick_place", "can")
     assert can.camera == scenes.BIN_CAMERA  # injected: the can demo's own model has no such camera
+    # the camera pose the rubric reads image words with: the same as the shipped table for these cameras
+    from vlmproprio.scoring import camera_axes
+
+    for ep_, env in ((door, "Door"), (can, "PickPlace")):
+        table = json.loads((Path(vlmproprio.__file__).parent / "lexicons" / "cameras.json").read_text())
+        want = table["envs"][env][ep_.camera]
+        assert np.allclose([ep_.extra["camera_axes"][k] for k in want], [want[k] for k in want], atol=2e-3)
+        assert "extra.camera_axes" in camera_axes(ep_).source
     lift = load_episode(root, "imp_lift_01")
     assert lift.task == "lift" and lift.success and lift.target_bin is None
     assert "lift it up" in lift.instruction

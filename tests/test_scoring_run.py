@@ -14,6 +14,7 @@ import pytest
 
 from scoring_helpers import fake_spec, prefill_embeddings, write_synthetic_run
 from vlmproprio.backends.base import Backend
+from vlmproprio.cache import key_identity, request_key
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest
 from vlmproprio.embeddings import EmbeddingError
 from vlmproprio.evaluation import ScoreRunError, score_run
@@ -238,7 +239,11 @@ def test_judge_scorer_reports_agreement_with_the_rubric(small_run):
     run, ids = small_run
     judge = RuleJudge()
     t = score_run(run, encoder=fake_spec(), judge=judge, write=False)
-    assert len(judge.seen) == len(ids) * len(CONDS)
+    # judge requests are content-addressed like captioning's: a caption judged against the same ground
+    # truth is asked once, whichever episode or condition it came from
+    assert len(t.judge["verdicts"]) == len(ids) * len(CONDS)
+    keys = [request_key(key_identity(judge.identity()), r) for r in judge.seen]
+    assert len(keys) == len(set(keys)) and 0 < len(keys) < len(ids) * len(CONDS)
     assert "Ground truth" in judge.seen[0].messages[-1].text and judge.seen[0].tag.stage == "judge"
     agr = t.judge["agreement"]
     assert agr["n"] == 28 and agr["unparsed"] == len(CONDS)  # bin0_00 answers are not JSON

@@ -56,7 +56,6 @@ import functools
 import hashlib
 import json
 import logging
-import os
 import sqlite3
 import time
 import zlib
@@ -79,8 +78,8 @@ IDENTITY_FIELDS: tuple[str, ...] = ("backend", "model_id", "revision", "dtype", 
 STATUSES: tuple[str, ...] = ("ok", "empty")
 Mode = Literal["replay", "live", "record"]
 MODES: tuple[str, ...] = ("replay", "live", "record")
-CACHE_ENV = "VLMPROPRIO_CACHE"
-DEFAULT_CACHE_DIR = Path(".vlmproprio-cache") / "responses"
+# The response cache is the cache folder itself (its cache.db); embeddings/ and models/ sit beside that file, so
+# `--cache-dir DIR` names one folder for every cache and DIR/cache.db is where a run's answers are.
 
 
 class CacheError(VlmproprioError):
@@ -232,14 +231,15 @@ def _entry_from_record(rec: object, *, model: str = "", identity: dict | None = 
 
 
 def cache_root() -> Path:
-    """Where vlmproprio keeps its caches: $VLMPROPRIO_CACHE, else ./.vlmproprio-cache."""
-    env = os.environ.get(CACHE_ENV)
-    return Path(env) if env else DEFAULT_CACHE_DIR.parent
+    """Where vlmproprio keeps its caches: $VLMPROPRIO_CACHE, else the user cache directory (vlmproprio.locations)."""
+    from vlmproprio.locations import cache_root as root
+
+    return root()
 
 
 def default_cache_dir() -> Path:
-    """The response cache: <cache root>/responses."""
-    return cache_root() / DEFAULT_CACHE_DIR.name
+    """The response cache: the cache folder itself (see cache_root)."""
+    return cache_root()
 
 
 @functools.cache
@@ -520,8 +520,9 @@ def import_cassette(cache: ResponseCache, path: Path | str) -> tuple[str, int]:
 def replay_miss_message(model: str, key: str, tag: RequestTag, where: str) -> str:
     return (
         f"no recorded answer for {tag} (key {key}) in {where}. Replay mode never calls a model: record it by "
-        f"running model {model!r} in record mode (live model or server needed), then "
-        f"`vlmproprio cassette export --model {model}` and commit fixtures/responses/"
+        f"running it in record mode where it can run (`vlmproprio run --model {model} --mode record`, which writes "
+        f"<fixtures>/responses/{model}.jsonl; answers already in a response cache: "
+        f"`vlmproprio cassette export --model {model}`) and commit the cassette"
     )
 
 
@@ -594,7 +595,7 @@ class CachedBackend:
             if self.mode == "replay":
                 raise CacheCorruptError(
                     f"{exc}. Replay mode cannot recompute it: delete {self.cache.directory} and re-import the "
-                    "cassette (`vlmproprio cassette import`), or run in live mode",
+                    "cassette (`vlmproprio cassette import CASSETTE.jsonl`), or run in live mode (--mode live)",
                     key,
                 ) from exc
             log.warning("corrupt cache entry dropped and recomputed: %s", exc)

@@ -8,39 +8,69 @@ Known errors print one line and exit with status 2; `--debug` shows the tracebac
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from vlmproprio.errors import UsageError, VlmproprioError
-
-DEFAULT_FIXTURES = Path("fixtures")
-RESPONSE_CACHE_HELP = "response cache folder (default: $VLMPROPRIO_CACHE/responses, else ./.vlmproprio-cache/responses)"
+from vlmproprio.options import (
+    CACHE_HELP,
+    CONDITIONS_HELP,
+    DEFAULT_CONDITIONS,
+    DEFAULT_MODE,
+    EPISODES_HELP,
+    FIXTURES_HELP,
+    MODE_HELP,
+    MODEL_HELP,
+    MODES,
+    check_range,
+    split_list,
+)
 
 EPILOG = """\
 typical use:
   vlmproprio verify                          check the shipped fixtures against their manifest
-  vlmproprio run --model reference           caption all 22 episodes under every condition
-  vlmproprio import-demos demo.hdf5 --out my_fixtures    your own robosuite demos as episodes
+  vlmproprio models                          the models, and which can run here (cassette, weights)
+  vlmproprio run --model reference --out runs/reference   caption all 22 episodes under every condition
   vlmproprio report runs/reference           tables, plots and an HTML page for a run
+  vlmproprio import-demos demo.hdf5 --out my_fixtures    your own robosuite demos as episodes
   pytest benchmark/ --model tiny-qwen2-vl    the benchmark with its regression gates
+
+lists: --model, --conditions, --episodes ... take a comma list, may be repeated, or both.
+fixtures: --fixtures, else $VLMPROPRIO_FIXTURES, else the fixtures/ of the repository you are in.
+caches: --cache-dir, else $VLMPROPRIO_CACHE, else the user cache directory (~/.cache/vlmproprio).
 """
 
 
 # ---------------------------------------------------------------------------------------------- commands
 
 
+def fixtures_of(args: argparse.Namespace, *, must_exist: bool = True) -> Path:
+    """--fixtures, else $VLMPROPRIO_FIXTURES, else the repository's (vlmproprio.locations)."""
+    from vlmproprio.locations import resolve_fixtures
+
+    return resolve_fixtures(args.fixtures, must_exist=must_exist)
+
+
+def cache_root_of(args: argparse.Namespace) -> Path:
+    """--cache-dir, else $VLMPROPRIO_CACHE, else the user cache directory."""
+    from vlmproprio.locations import cache_root
+
+    return cache_root(args.cache_dir)
+
+
 def cmd_verify(args: argparse.Namespace) -> int:
     from vlmproprio.summary import fixture_summary, format_summary
 
-    print(format_summary(fixture_summary(args.fixtures)))
+    print(format_summary(fixture_summary(fixtures_of(args))))
     return 0
 
 
 def cmd_manifest(args: argparse.Namespace) -> int:
     from vlmproprio.episodes import write_manifest
 
-    path = write_manifest(args.fixtures)
+    path = write_manifest(fixtures_of(args))
     print(f"wrote {path}")
     return 0
 
@@ -48,7 +78,9 @@ def cmd_manifest(args: argparse.Namespace) -> int:
 def cmd_record(args: argparse.Namespace) -> int:
     from vlmproprio.record.recorder import record_all
 
-    record_all(args.fixtures, episode_ids=args.episodes, contact_sheets=args.contact_sheets)
+    fixtures = fixtures_of(args, must_exist=False)
+    sheets = args.contact_sheets or Path("runs") / "contact_sheets"
+    record_all(fixtures, episode_ids=split_list(args.episodes) or None, contact_sheets=sheets)
     return 0
 
 
@@ -60,7 +92,7 @@ def cmd_import_demos(args: argparse.Namespace) -> int:
         args.out,
         args.task,
         camera=args.camera,
-        demos=args.demos,
+        demos=split_list(args.demos) or None,
         replay_mode=args.replay,
         prefix=args.prefix,
         progress=not args.no_progress,
@@ -86,13 +118,16 @@ def cmd_make_tiny_model(args: argparse.Namespace) -> int:
 
 def cmd_cassette(args: argparse.Namespace) -> int:
     from vlmproprio.backends.registry import cassette_path, model_slug
-    from vlmproprio.cache import ResponseCache, default_cache_dir, export_cassette, import_cassette
+    from vlmproprio.cache import ResponseCache, export_cassette, import_cassette
     from vlmproprio.episodes import register_fixture_file
 
-    cache_dir = args.cache or default_cache_dir()
+    cache_dir = cache_root_of(args)  # the response cache is the cache folder's cache.db
+    if args.action == "export":
+        model_slug(args.model)  # an unsafe name is refused before anything is opened
     with ResponseCache(cache_dir) as cache:
         if args.action == "export":
-            path = args.out or cassette_path(args.model, args.cassette_dir)
+            cassette_dir = args.cassette_dir or (args.out.parent if args.out else fixtures_of(args) / "responses")
+            path = args.out or cassette_path(args.model, cassette_dir)
             path, n = export_cassette(cache, model_slug(args.model), path, merge=not args.replace)
             manifest = register_fixture_file(path)
             print(f"wrote {n} answers of {args.model} to {path}" + (f" (updated {manifest})" if manifest else ""))
@@ -160,10 +195,33 @@ def _embed_recorded(runs, run_dir: Path, fixtures: Path) -> None:
 
 
 def cmd_models(args: argparse.Namespace) -> int:
-    from vlmproprio.backends.registry import format_registry
+    from vlmproprio.backends.registry import BackendSettings, format_availability, format_registry
 
-    print(format_registry())
+    if args.plain:
+        print(format_registry())
+        return 0
+    from vlmproprio.locations import resolve_fixtures
+
+    try:
+        fixtures = resolve_fixtures(args.fixtures)
+    except UsageError:
+        fixtures = None
+    cassettes = fixtures / "responses" if fixtures else Path("fixtures") / "responses"
+    settings = BackendSettings(
+        cassette_dir=cassettes, base_url=args.base_url, api_key_env=args.api_key_env, allow_download=args.allow_download
+    )
+    print(f"cassettes: {cassettes}" + ("" if fixtures else " (no fixture folder found: pass --fixtures)"))
+    print(format_availability(settings, split_list(args.model) or None))
     return 0
+
+
+def _check_run_ranges(args: argparse.Namespace) -> None:
+    """Numbers whose range argparse cannot check; the messages the backends and pipeline would give, earlier."""
+    if args.max_new_tokens is not None and args.max_new_tokens < 1:
+        raise UsageError(f"--max-new-tokens must be at least 1, got {args.max_new_tokens}")
+    check_range("--batch-size", args.batch_size, 1)
+    check_range("--threads", args.threads, 1)
+    check_range("--batch-tokens", args.batch_tokens, 1)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
@@ -173,21 +231,25 @@ def cmd_run(args: argparse.Namespace) -> int:
     from vlmproprio.prompts import PromptOptions
     from vlmproprio.runner import RunPlan, run
 
-    if args.max_new_tokens is not None and args.max_new_tokens < 1:
-        raise UsageError(f"--max-new-tokens must be at least 1, got {args.max_new_tokens}")
+    _check_run_ranges(args)
+    fixtures = fixtures_of(args)
+    models = split_list(args.model)
+    if not models:
+        raise UsageError("empty model name (--model NAME; see `vlmproprio models`)")
+    cache_root = cache_root_of(args)
     plan = RunPlan(
-        models=tuple(args.model),
-        conditions=tuple(parse_conditions(args.conditions)),
-        fixtures=args.fixtures,
+        models=tuple(models),
+        conditions=tuple(parse_conditions(args.conditions or DEFAULT_CONDITIONS)),
+        fixtures=fixtures,
         out=args.out or Path("runs") / "latest",
-        episode_ids=tuple(args.episodes) if args.episodes else None,
+        episode_ids=tuple(split_list(args.episodes)) or None,
         mode=args.mode,
-        cache_dir=args.cache_dir,
+        cache_dir=cache_root,
         pipeline=PipelineSettings(
             k=args.k,
             frame_stride=args.frame_stride,
             max_images_p3=args.max_images_p3,
-            prompt=PromptOptions(example=not args.no_example),
+            prompt=PromptOptions(example=not args.no_example, version=args.prompt_version),
         ),
         max_new_tokens=args.max_new_tokens,
         backend=BackendSettings(
@@ -202,6 +264,8 @@ def cmd_run(args: argparse.Namespace) -> int:
             api_key_env=args.api_key_env,
             concurrency=args.concurrency,
             timeout_s=args.timeout,
+            home=cache_root,
+            allow_download=args.allow_download,
         ),
         progress=not args.no_progress,
     )
@@ -209,48 +273,68 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.mode == "record":
         _embed_recorded(runs, plan.out, plan.fixtures)
     for r in runs:
-        s = r.stats
-        print(
-            f"{r.name}: {len(r.transcripts)} transcripts in {plan.out}, "
-            f"{s.get('hits', 0)} cached answers, {s.get('misses', 0)} model calls"
-            + (f", cassette {r.cassette}" if r.cassette else "")
-        )
+        print(f"{r.name}: {len(r.transcripts)} transcripts in {plan.out} ({r.mode}); {answer_summary(r)}")
     if args.report:
-        return _score_and_report(plan.out, args.fixtures)
+        return _score_and_report(plan.out, fixtures, progress=not args.no_progress)
     return 0
 
 
-def _score_and_report(run_dir: Path, fixtures: Path | None) -> int:
+def answer_summary(r) -> str:
+    """Where a model run's answers came from: replayed from a cassette, from the response cache, or computed."""
+    from vlmproprio.backends.registry import parse_model_name
+
+    hits, misses = r.stats.get("hits", 0), r.stats.get("misses", 0)
+    if parse_model_name(r.name).backend == "reference":
+        return f"{hits} answers from the response cache, {misses} computed by rules (no model)"
+    if r.mode == "replay":
+        return f"{misses} answers replayed from the cassette, 0 model calls"
+    text = f"{hits} answers from the response cache, {misses} computed by the model"
+    return text + (f"; cassette {r.cassette}" if r.cassette else "")
+
+
+def _score_and_report(run_dir: Path, fixtures: Path | None, *, progress: bool = True) -> int:
     from vlmproprio.evaluation import score_run
     from vlmproprio.report import write_report
 
-    score_run(run_dir, fixtures=fixtures)
-    index = write_report(run_dir, fixtures=fixtures)
+    with _stages("score + report", 2, progress) as bar:
+        write_frames_csv(run_dir, score_run(run_dir, fixtures=fixtures))
+        bar.update()
+        index = write_report(run_dir, fixtures=fixtures)
+        bar.update()
     print(f"report: {index}")
     return 0
 
 
-def _comma_list(text: str | None) -> list[str] | None:
-    return [x.strip() for x in text.split(",") if x.strip()] if text else None
+def _stages(desc: str, total: int, enabled: bool):
+    """A progress bar over a command's stages (tqdm, on stderr; off with --no-progress or when not a terminal)."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="step", disable=not enabled or None, leave=False)
 
 
 def cmd_report(args: argparse.Namespace) -> int:
     from vlmproprio.report import scores_present, write_report
 
-    if not scores_present(args.run_dir):
-        from vlmproprio.evaluation import score_run
+    progress = not args.no_progress
+    with _stages("report", 2, progress) as bar:
+        if not scores_present(args.run_dir):
+            from vlmproprio.evaluation import score_run
 
-        if not args.run_dir.is_dir():
-            raise UsageError(f"{args.run_dir}: run directory not found")
-        score_run(args.run_dir, fixtures=args.fixtures)
-        print(f"scored {args.run_dir} (no scores were there)")
-    index = write_report(
-        args.run_dir,
-        fixtures=args.fixtures,
-        out=args.out,
-        examples=_comma_list(args.examples),
-        trace_conditions=_comma_list(args.trace_conditions),
-    )
+            if not args.run_dir.is_dir():
+                raise UsageError(f"{args.run_dir}: run directory not found")
+            bar.set_description("report: scoring (no scores yet)")
+            write_frames_csv(args.run_dir, score_run(args.run_dir, fixtures=args.fixtures, progress=progress))
+            print(f"scored {args.run_dir} (no scores were there)")
+        bar.update()
+        bar.set_description("report: tables, plots, page")
+        index = write_report(
+            args.run_dir,
+            fixtures=args.fixtures,
+            out=args.out,
+            examples=split_list(args.examples) or None,
+            trace_conditions=split_list(args.trace_conditions) or None,
+        )
+        bar.update()
     print(f"report: {index}")
     return 0
 
@@ -261,13 +345,13 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
     kwargs = {}
     if args.metrics:
-        kwargs["metrics"] = _comma_list(args.metrics)
+        kwargs["metrics"] = split_list(args.metrics)
     comparison = compare_runs(
         args.run_a,
         args.run_b,
         model_a=args.model_a,
         model_b=args.model_b,
-        tasks=_comma_list(args.task),
+        tasks=split_list(args.task) or None,
         **kwargs,
     )
     text = comparison.to_markdown()
@@ -282,6 +366,9 @@ def cmd_score(args: argparse.Namespace) -> int:
     from vlmproprio.embeddings import DEFAULT_BATCH_SIZE, DEFAULT_THREADS, encoder_spec
     from vlmproprio.evaluation import score_run
 
+    check_range("--threshold", args.threshold, 0.0, 1.0)
+    check_range("--encoder-batch-size", args.encoder_batch_size, 1)
+    check_range("--encoder-threads", args.encoder_threads, 1)
     default = (args.encoder, args.encoder_batch_size, args.encoder_threads) == (
         None,
         DEFAULT_BATCH_SIZE,
@@ -293,27 +380,135 @@ def cmd_score(args: argparse.Namespace) -> int:
         if default
         else encoder_spec(args.encoder, batch_size=args.encoder_batch_size, threads=args.encoder_threads)
     )
-    tables = score_run(
-        args.run_dir,
+    score = dict(
         fixtures=args.fixtures,
         encoder=spec,
-        embedding_cache=args.embedding_cache,
+        embedding_cache=cache_root_of(args) / "embeddings",
         threshold=args.threshold,
+        progress=not args.no_progress,
     )
+    tables = _score_with_judge(args, score) if args.judge else score_run(args.run_dir, **score)
+    csv_path = write_frames_csv(args.run_dir, tables)
     t = tables.timing
     e = t["embeddings"]
     print(
         f"scored {len(tables.rows)} transcripts into {args.run_dir / 'scores'} in {t['total_s']:.1f} s "
-        f"(embeddings: {e['sidecar']} from sidecars, {e['cached']} cached, {e['computed']} computed)"
+        f"(embeddings: {e['sidecar']} from sidecars, {e['cached']} cached, {e['computed']} computed); "
+        f"per-frame table {csv_path}"
     )
+    if tables.judge is not None:
+        agr = tables.judge["agreement"]
+        kappas = ", ".join(
+            f"{k} {v['kappa']:.2f}" if v["kappa"] is not None else f"{k} -" for k, v in agr["items"].items()
+        )
+        print(
+            f"judge {args.judge}: {agr['n']} final captions, {agr['unparsed']} unparsed; rubric vs judge kappa: {kappas}"
+        )
     return 0
+
+
+def cmd_power(args: argparse.Namespace) -> int:
+    from vlmproprio import power
+
+    base = power.PowerSettings()
+    settings = power.PowerSettings(
+        alpha=base.alpha if args.alpha is None else args.alpha,
+        family=base.family if args.family is None else args.family,
+        n_sims=base.n_sims if args.sims is None else args.sims,
+        seed=base.seed if args.seed is None else args.seed,
+    )
+    analysis = power.analyse(
+        settings,
+        words=power.PAPER_WORDS if args.words is None else tuple(args.words),
+        sd_words=power.DEFAULT_SD_WORDS if args.sd_words is None else args.sd_words,
+        sd_f1=power.DEFAULT_SD_F1 if args.sd_f1 is None else args.sd_f1,
+        correctness=power.DEFAULT_CORRECTNESS if args.correctness is None else tuple(args.correctness),
+    )
+    print(power.summary_markdown(analysis))
+    for path in power.write_power(analysis, args.out):
+        print(f"wrote {path}")
+    return 0
+
+
+def cmd_export_dataset(args: argparse.Namespace) -> int:
+    from vlmproprio.dataset_export import export_dataset
+
+    episodes = split_list(args.episodes) or None
+    summary = export_dataset(fixtures_of(args), args.out, episodes, overwrite=args.overwrite)
+    print(summary.line())
+    return 0
+
+
+def _score_with_judge(args: argparse.Namespace, score: dict):
+    """score_run with a judge model whose requests go through the response cache and cassettes like captioning."""
+    from vlmproprio.backends.registry import BackendSettings, resolve_mode
+    from vlmproprio.evaluation import resolve_fixtures, score_run
+    from vlmproprio.scoring import judge_session
+
+    manifest_path = args.run_dir / "run.json"
+    manifest = json.loads(manifest_path.read_text(encoding="utf-8")) if manifest_path.is_file() else {}
+    fixtures = resolve_fixtures(args.run_dir, manifest, args.fixtures)
+    settings = BackendSettings(
+        threads=args.judge_threads,
+        base_url=args.base_url,
+        api_key_env=args.api_key_env,
+        cassette_dir=fixtures / "responses",
+    )
+    with judge_session(
+        args.judge, resolve_mode(args.judge, args.judge_mode, settings), settings, cache_root_of(args)
+    ) as judge:
+        return score_run(args.run_dir, **score, judge=judge)
+
+
+def write_frames_csv(run_dir: Path, tables) -> Path:
+    from vlmproprio.frame_table import write_frame_table
+
+    return write_frame_table(run_dir, tables)
+
+
+def cmd_show(args: argparse.Namespace) -> int:
+    from vlmproprio.show import format_shown, rerender
+
+    shown = rerender(args.run_dir, args.episode, args.condition, model=args.model, fixtures=args.fixtures)
+    print(format_shown(shown), end="")
+    differ = sum(not s.matches for s in shown)
+    print(f"{len(shown)} requests; {len(shown) - differ} match the keys the run recorded, {differ} differ")
+    return 0 if not differ else 1
 
 
 # ---------------------------------------------------------------------------------------------- parser
 
 
-def _add_fixtures(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--fixtures", type=Path, default=DEFAULT_FIXTURES, help="fixture folder (default: ./fixtures)")
+def _add_fixtures(p: argparse.ArgumentParser, help: str = FIXTURES_HELP) -> None:
+    p.add_argument("--fixtures", type=Path, default=None, metavar="DIR", help=help)
+
+
+def _add_cache_dir(p: argparse.ArgumentParser) -> None:
+    """One option for the cache root everywhere; --cache and --embedding-cache are the older names."""
+    p.add_argument("--cache-dir", type=Path, default=None, metavar="DIR", help=CACHE_HELP)
+    p.add_argument("--cache", "--embedding-cache", dest="cache_dir", type=Path, help=argparse.SUPPRESS)
+
+
+def _add_list(p, flag: str, help: str, metavar: str = "LIST", *, spaces: bool = False) -> None:
+    """A list option: a comma list, repeatable (``spaces``: space-separated values accepted too, as before)."""
+    if spaces:
+        help += "; space-separated values are accepted too"
+        p.add_argument(flag, action="extend", nargs="+", metavar=metavar, help=help)
+    else:
+        p.add_argument(flag, action="append", metavar=metavar, help=help)
+
+
+def _add_no_progress(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("vlmproprio")
+    except PackageNotFoundError:  # a source tree on the path without an install
+        return "unknown (not installed)"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -326,13 +521,14 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
     p = sub.add_parser("verify", help="check fixtures against their manifest and summarise them")
     _add_fixtures(p)
     p.set_defaults(func=cmd_verify)
 
-    p = sub.add_parser("manifest", help="rewrite fixtures/manifest.json from the files present")
+    p = sub.add_parser("manifest", help="rewrite the fixtures' manifest.json from the files present")
     _add_fixtures(p)
     p.set_defaults(func=cmd_manifest)
 
@@ -342,12 +538,12 @@ def build_parser() -> argparse.ArgumentParser:
         description="Re-record episodes with the scripted operators. Bit-identical on this machine kind "
         "(pinned mujoco, EGL or OSMesa rendering). Writes episodes, the manifest and a contact sheet.",
     )
-    _add_fixtures(p)
-    p.add_argument("--episodes", nargs="+", metavar="ID", help="only these episode ids (default: all 22)")
+    _add_fixtures(p, FIXTURES_HELP + "; written if it does not exist")
+    _add_list(p, "--episodes", "only these episode ids, a comma list or repeated (default: all 22)", "IDS", spaces=True)
     p.add_argument(
         "--contact-sheets",
         type=Path,
-        default=Path("runs/contact_sheets"),
+        default=None,
         help="folder for one contact sheet per episode (default: runs/contact_sheets)",
     )
     p.set_defaults(func=cmd_record)
@@ -357,14 +553,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="import robosuite / robomimic demo.hdf5 demonstrations as episodes (needs the [record] extra)",
         description="Replay each demonstration of a robosuite or robomimic demo.hdf5 in its robosuite env, "
         "render a frame every 20 steps as the recorder does, derive states and ground truth, and write episodes "
-        "and the manifest into --out (usable as `vlmproprio run --fixtures OUT`). Tasks: door, "
+        "and the manifest into --out (usable as `vlmproprio run --model reference --fixtures OUT`). Tasks: door, "
         "pick_place_cereal, pick_place_can, lift.",
     )
     p.add_argument("file", type=Path, metavar="FILE.hdf5", help="robosuite or robomimic demo file")
     p.add_argument("--task", help="door | pick_place_cereal | pick_place_can | lift (default: from the file's env)")
     p.add_argument("--out", type=Path, required=True, help="fixture folder to write episodes/ and manifest.json into")
     p.add_argument("--camera", help="camera to render (default: the task's, e.g. vlmproprio_bins for pick-place)")
-    p.add_argument("--demos", nargs="+", metavar="NAME", help="only these demos, e.g. demo_1 demo_3 (default: all)")
+    _add_list(p, "--demos", "only these demos, e.g. demo_1,demo_3 (default: all)", "NAMES", spaces=True)
     p.add_argument(
         "--replay",
         choices=("auto", "actions", "states"),
@@ -373,7 +569,7 @@ def build_parser() -> argparse.ArgumentParser:
         "set the recorded states; auto: actions when they reproduce every state, else states (default)",
     )
     p.add_argument("--prefix", help="episode id prefix (default: imp_<task>, giving ids like imp_door_01)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_no_progress(p)
     p.set_defaults(func=cmd_import_demos)
 
     p = sub.add_parser(
@@ -395,34 +591,14 @@ def build_parser() -> argparse.ArgumentParser:
         "instruction). Answers are cached by content, so an interrupted run resumes where it stopped.",
     )
     _add_fixtures(p)
-    p.add_argument(
-        "--model",
-        action="append",
-        required=True,
-        help="registry name, hf:<path|id> or openai:<name>; repeat for several (see `vlmproprio models`)",
-    )
-    p.add_argument(
-        "--conditions",
-        default="all",
-        help="comma list of none, ee, joint, both, both_shuffled, "
-        "both_noisy, state_only, primitives; or paper, controls, all (default: all)",
-    )
-    p.add_argument("--episodes", nargs="+", metavar="ID", help="episode ids (default: every episode in --fixtures)")
-    p.add_argument(
-        "--mode",
-        choices=("live", "record", "replay"),
-        default="live",
-        help="live: run the model, use and fill the cache (default); record: live and write the answers "
-        "to <fixtures>/responses/<model>.jsonl; replay: answers only from that cassette",
-    )
+    p.add_argument("--model", action="append", required=True, metavar="NAMES", help=MODEL_HELP)
+    _add_list(p, "--conditions", CONDITIONS_HELP, "CONDS")
+    _add_list(p, "--episodes", EPISODES_HELP, "IDS", spaces=True)
+    p.add_argument("--mode", choices=MODES, default=DEFAULT_MODE, help=MODE_HELP)
     p.add_argument("--out", type=Path, help="run directory (default: runs/latest)")
-    p.add_argument(
-        "--cache-dir",
-        type=Path,
-        help=RESPONSE_CACHE_HELP,
-    )
+    _add_cache_dir(p)
     p.add_argument("--report", action="store_true", help="also score the run and write its report")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_no_progress(p)
     g = p.add_argument_group("method")
     g.add_argument("--k", type=int, default=5, help="frames per group (default 5, the paper's)")
     g.add_argument(
@@ -433,8 +609,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     g.add_argument("--max-images-p3", type=int, help="cap on images in Process 3 for small-context models")
     g.add_argument("--no-example", action="store_true", help="leave the worked cube-stacking example out")
+    g.add_argument(
+        "--prompt-version",
+        choices=("suite", "paper-verbatim"),
+        default="suite",
+        help="suite (default): texts that say only what the condition sends; paper-verbatim: the paper's texts as printed",
+    )
     g.add_argument("--max-new-tokens", type=int, help="per answer (default: the model's, 512; tiny test models 64)")
     g = p.add_argument_group("local models (hf)")
+    g.add_argument(
+        "--allow-download",
+        action="store_true",
+        help="fetch missing hf: weights from the Hugging Face Hub when it is reachable (default: local files only)",
+    )
     g.add_argument("--device", default="cpu", help="cpu | cuda | cuda:N | auto (default cpu)")
     g.add_argument("--dtype", default="auto", help="auto | float32 | bfloat16 | float16 (default auto)")
     g.add_argument("--attn", default="sdpa", help="attention implementation: eager | sdpa | flash_attention_2")
@@ -457,19 +644,28 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--timeout", type=float, default=120.0, help="seconds per request (default 120)")
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("models", help="list the model registry")
+    p = sub.add_parser(
+        "models",
+        help="the model registry, and per model whether it can run here (cassette, weights) and how to get it",
+        description="List the registry's models. For each: is its cassette in <fixtures>/responses/ (replay), can "
+        "it run live here (weights in a local folder or the local Hugging Face cache, an API key or --base-url), "
+        "and if not, how to get what is missing.",
+    )
+    _add_fixtures(p)
+    _add_list(p, "--model", "only these models (default: the whole registry); any name --model takes", "NAMES")
+    p.add_argument("--base-url", help="OpenAI-compatible server the openai models would use")
+    p.add_argument("--api-key-env", default="OPENAI_API_KEY", help="environment variable holding the key")
+    p.add_argument("--allow-download", action="store_true", help="count hf: weights on the Hub as available")
+    p.add_argument("--plain", action="store_true", help="only the registry table (name, backend, weights)")
     p.set_defaults(func=cmd_models)
 
     p = sub.add_parser("cassette", help="move recorded answers between the response cache and fixtures/responses/")
     csub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
     pe = csub.add_parser("export", help="cache -> fixtures/responses/<model>.jsonl (merged with what is there)")
     pe.add_argument("--model", required=True, help="model name, as given to --model when the answers were made")
-    pe.add_argument(
-        "--cache",
-        type=Path,
-        help=RESPONSE_CACHE_HELP,
-    )
-    pe.add_argument("--cassette-dir", type=Path, default=Path("fixtures/responses"))
+    _add_cache_dir(pe)
+    _add_fixtures(pe)
+    pe.add_argument("--cassette-dir", type=Path, default=None, help="default: <fixtures>/responses")
     pe.add_argument("--out", type=Path, help="cassette file (default: <cassette-dir>/<model slug>.jsonl)")
     pe.add_argument("--replace", action="store_true", help="start the cassette anew instead of merging")
     pe.add_argument(
@@ -478,11 +674,7 @@ def build_parser() -> argparse.ArgumentParser:
     pe.set_defaults(func=cmd_cassette)
     pi = csub.add_parser("import", help="cassette -> response cache")
     pi.add_argument("cassette", type=Path, help="a .jsonl cassette")
-    pi.add_argument(
-        "--cache",
-        type=Path,
-        help=RESPONSE_CACHE_HELP,
-    )
+    _add_cache_dir(pi)
     pi.set_defaults(func=cmd_cassette)
     pm = csub.add_parser(
         "embed",
@@ -512,23 +704,38 @@ def build_parser() -> argparse.ArgumentParser:
         "score",
         help="score a run: caption rubric, segmentation sweep, paired statistics -> RUN_DIR/scores/",
         description="Score every transcript of a run against the fixtures' ground truth and write tables "
-        "(rows, aggregate, threshold sweep, paired statistics, audit) to RUN_DIR/scores/. Frame-caption "
-        "embeddings are cached in RUN_DIR/embeddings, so re-scoring needs no torch.",
+        "(rows, aggregate, threshold sweep, paired statistics, audit) and a per-frame table (frames.csv) to "
+        "RUN_DIR/scores/. Frame-caption embeddings are cached in <cache root>/embeddings (see --cache-dir), so "
+        "re-scoring needs no torch.",
     )
-    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory written by `vlmproprio run`")
-    p.add_argument("--fixtures", type=Path, default=None, help="fixture folder (default: the one in RUN_DIR/run.json)")
-    p.add_argument("--threshold", type=float, default=0.65, help="similarity threshold for boundaries (default 0.65)")
+    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory (the --out of the run command)")
+    _add_fixtures(p, "fixture folder (default: the one in RUN_DIR/run.json)")
+    p.add_argument(
+        "--threshold", type=float, default=0.65, help="similarity threshold for boundaries, in [0, 1] (default 0.65)"
+    )
     p.add_argument(
         "--encoder", default=None, metavar="PATH", help="local sentence-transformers folder (default: all-MiniLM-L6-v2)"
     )
     p.add_argument("--encoder-batch-size", type=int, default=8, help="fixed encoder batch size (part of the cache key)")
     p.add_argument("--encoder-threads", type=int, default=1, help="torch threads while encoding (default 1)")
-    p.add_argument(
-        "--embedding-cache",
-        type=Path,
-        default=None,
-        help="embedding cache folder (default: $VLMPROPRIO_CACHE/embeddings, else ./.vlmproprio-cache/embeddings)",
+    _add_cache_dir(p)
+    _add_no_progress(p)
+    g = p.add_argument_group("judge model (optional; the rubric stays the reference)")
+    g.add_argument(
+        "--judge",
+        metavar="MODEL",
+        help="also grade the final captions with this model (registry name, hf:, openai:); its agreement with "
+        "the rubric (Cohen's kappa) goes to scores/judge.json and the report",
     )
+    g.add_argument(
+        "--judge-mode",
+        choices=MODES,
+        default=DEFAULT_MODE,
+        help="as `run --mode`: " + MODE_HELP,
+    )
+    g.add_argument("--judge-threads", type=int, default=1, help="torch threads of a local judge (default 1)")
+    g.add_argument("--base-url", help="OpenAI-compatible server URL for an openai: judge")
+    g.add_argument("--api-key-env", default="OPENAI_API_KEY", help="environment variable holding the key")
     p.set_defaults(func=cmd_score)
 
     p = sub.add_parser(
@@ -539,19 +746,22 @@ def build_parser() -> argparse.ArgumentParser:
         "episode's frames beside its captions with the rubric matches highlighted). Scores the run first "
         "if RUN_DIR/scores/ is missing.",
     )
-    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory written by `vlmproprio run`")
-    p.add_argument("--fixtures", type=Path, default=None, help="fixture folder (default: the one in RUN_DIR/run.json)")
+    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory (the --out of the run command)")
+    _add_fixtures(p, "fixture folder (default: the one in RUN_DIR/run.json)")
     p.add_argument("--out", type=Path, default=None, help="report folder (default: RUN_DIR/report)")
-    p.add_argument(
+    _add_list(
+        p,
         "--examples",
-        metavar="IDS",
-        help="comma list of episodes for the trace figures (default: the first Door and the first bin episode)",
+        "episodes for the trace figures, a comma list or repeated (default: the first Door and the first bin episode)",
+        "IDS",
     )
-    p.add_argument(
+    _add_list(
+        p,
         "--trace-conditions",
-        metavar="CONDS",
-        help="comma list of conditions in the trace figures (default: none,both, as in the paper)",
+        "conditions in the trace figures, a comma list or repeated (default: none,both, as in the paper)",
+        "CONDS",
     )
+    _add_no_progress(p)
     p.set_defaults(func=cmd_report)
 
     p = sub.add_parser(
@@ -565,10 +775,71 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("run_b", type=Path, metavar="RUN_B", nargs="?", help="scored run directory (B; default RUN_A)")
     p.add_argument("--model-a", help="model of side A")
     p.add_argument("--model-b", help="model of side B")
-    p.add_argument("--task", metavar="TASKS", help="comma list of door, pick_place, all (default: every one)")
-    p.add_argument("--metrics", metavar="COLS", help="comma list of score columns (default: the main metrics)")
+    _add_list(p, "--task", "door, pick_place, all: a comma list or repeated (default: every one)", "TASKS")
+    _add_list(p, "--metrics", "score columns, a comma list or repeated (default: the main metrics)", "COLS")
     p.add_argument("--out", type=Path, help="also write the comparison as Markdown to this file")
     p.set_defaults(func=cmd_compare)
+
+    p = sub.add_parser(
+        "power",
+        help="what 10 Door + 12 bin episodes can detect: power curves and minimal detectable effects",
+        description="Simulate the suite's paired test (exact sign-flip, stats.py) over the episode structure "
+        "(10 Door, 12 bins, 22 pooled) for effects of known size, at Holm's first-step level alpha / family. "
+        "Writes power.json, power.md and power_curves.png to --out.",
+    )
+    p.add_argument("--alpha", type=float, help="family-wise alpha (default 0.05)")
+    p.add_argument("--family", type=int, help="primary hypotheses corrected together with Holm (default 3)")
+    p.add_argument("--sims", type=int, help="simulated data sets per point (default 1000)")
+    p.add_argument("--seed", type=int, help="simulation seed (default: the statistics' seed)")
+    p.add_argument(
+        "--words",
+        type=float,
+        nargs=2,
+        metavar=("NONE", "BOTH"),
+        help="mean words without and with state (default: the paper's 25.2 35.45)",
+    )
+    p.add_argument("--sd-words", type=float, help="per-episode SD of the paired word difference (default 10)")
+    p.add_argument("--sd-f1", type=float, help="per-episode SD of the paired boundary-F1 difference (default 0.15)")
+    p.add_argument(
+        "--correctness",
+        type=float,
+        nargs=2,
+        metavar=("P", "Q"),
+        help="P(right) with and without state for the episodes-needed line (default 0.6 0.3)",
+    )
+    p.add_argument("--out", type=Path, default=Path("runs") / "power", help="output folder (default runs/power)")
+    p.set_defaults(func=cmd_power)
+
+    p = sub.add_parser(
+        "export-dataset",
+        help="the episodes as a Hugging Face datasets folder (Parquet + card; needs the [dataset] extra)",
+        description="Write the episodes as a Hugging Face `datasets` dataset: OUT/frames (one row per frame: "
+        "image, joints, end-effector pose, ground-truth phase and direction; the default config), OUT/episodes "
+        "and OUT/phases as Parquet, and a dataset card OUT/README.md. Load it with "
+        "datasets.load_dataset(OUT) or load_dataset(OUT, 'episodes').",
+    )
+    p.add_argument("out", type=Path, metavar="OUT", help="folder to write (must be empty or absent)")
+    _add_fixtures(p)
+    _add_list(
+        p, "--episodes", "export these episodes only, a comma list or repeated (default: all)", "IDS", spaces=True
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier export in OUT")
+    p.set_defaults(func=cmd_export_dataset)
+
+    p = sub.add_parser(
+        "show",
+        help="the full prompt of every request of one episode and condition of a run",
+        description="Re-render every request (Processes 1-3) of one (episode, condition) of a run from the settings "
+        "recorded in RUN_DIR/run.json, the fixtures and the answers in the transcript, and print each message's "
+        "full text (images as their sha256). Each request's cache key is compared with the one the run recorded; "
+        "exit status 1 if any differs (the prompts or fixtures changed since).",
+    )
+    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory (the --out of the run command)")
+    p.add_argument("--episode", required=True, help="episode id, e.g. door_00")
+    p.add_argument("--condition", required=True, help="condition, e.g. both")
+    p.add_argument("--model", help="model name or slug (default: the run's only model)")
+    _add_fixtures(p, "fixture folder (default: the one in RUN_DIR/run.json)")
+    p.set_defaults(func=cmd_show)
 
     return parser
 
@@ -585,6 +856,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("vlmproprio: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # e.g. show piped into head: the reader left; not an error of ours
+        sys.stdout = None  # type: ignore[assignment]  # nothing more can be written
+        return 0
     except Exception as exc:
         if args.debug or not isinstance(exc, VlmproprioError):
             raise

@@ -270,7 +270,9 @@ def register_fixture_file(path: Path) -> Path | None:
 def read_manifest(root: Path) -> dict[str, str]:
     path = Path(root) / MANIFEST_NAME
     if not path.is_file():
-        raise EpisodeError(f"{path}: manifest missing (run `vlmproprio manifest {root}` after changing fixtures)")
+        raise EpisodeError(
+            f"{path}: manifest missing (run `vlmproprio manifest --fixtures {root}` after changing fixtures)"
+        )
     try:
         data = json.loads(path.read_text())
         files = data["files"]

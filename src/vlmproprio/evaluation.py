@@ -308,6 +308,7 @@ def score_run(
     write: bool = True,
     judge=None,
     sidecars: Sequence[str | Path] | None = None,
+    progress: bool = False,
 ) -> ScoreTables:
     """Score every transcript of a run and (by default) write RUN_DIR/scores/.
 
@@ -317,7 +318,10 @@ def score_run(
     default) is any vlmproprio Backend that also grades the final captions; its agreement with the rubric
     goes to scores/judge.json. Frame-caption vectors are read first from ``sidecars`` (default: the
     ``<fixtures>/responses/<model>.embeddings.npz`` of the run's models; ``()``: none), so a replayed
-    cassette is scored without loading the encoder."""
+    cassette is scored without loading the encoder. ``progress`` shows a bar over the stages (load, embed,
+    score, statistics, write)."""
+    from tqdm import tqdm
+
     from vlmproprio.embeddings import (
         CachedEmbedder,
         EmbeddingStore,
@@ -327,6 +331,7 @@ def score_run(
         sidecar_vectors,
     )
 
+    bar = tqdm(total=5, desc="score: loading", unit="stage", disable=not progress or None, leave=False)
     t_start = time.perf_counter()
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
@@ -334,7 +339,9 @@ def score_run(
     manifest = _read_run_manifest(run_dir)
     transcripts = read_transcripts(run_dir)
     if not transcripts:
-        raise ScoreRunError(f"{run_dir / 'transcripts'}: no transcripts (run `vlmproprio run` first)")
+        raise ScoreRunError(
+            f"{run_dir / 'transcripts'}: no transcripts (run `vlmproprio run --model NAME --out {run_dir}` first)"
+        )
     root = resolve_fixtures(run_dir, manifest, fixtures)
     ids = sorted({t.episode_id for t in transcripts})
     episodes: dict[str, Episode] = {e.episode_id: e for e in load_episodes(root, ids, verify=verify)}
@@ -342,6 +349,8 @@ def score_run(
     episode_order = {e: i for i, e in enumerate([*run_order, *[i for i in ids if i not in run_order]])}
     conds = condition_order([t.condition for t in transcripts])
     t_loaded = time.perf_counter()
+    bar.update()
+    bar.set_description("score: embedding captions")
 
     if sidecars is None:
         stored = load_sidecars(root / "responses", {t.model for t in transcripts})
@@ -361,6 +370,8 @@ def score_run(
         embedder = CachedEmbedder(spec, store, sidecar=sidecar_vectors(stored, spec.key))
         vectors = embedder.embed(all_texts)
     t_embedded = time.perf_counter()
+    bar.update()
+    bar.set_description("score: rubric and segmentation")
 
     rows, sweep_rows, audit, traces = [], [], {}, {}
     lexicons = {}
@@ -421,6 +432,8 @@ def score_run(
             "true_phases": labels,
         }
     t_scored = time.perf_counter()
+    bar.update()
+    bar.set_description("score: paired statistics")
 
     rows = _sort_rows(rows, episode_order, conds)
     sweep_rows = _sort_rows(sweep_rows, episode_order, conds)
@@ -434,6 +447,8 @@ def score_run(
     # already in a meaningful order: model, task, comparison (as listed), metric (as listed)
     paired = paired_table(rows, comps, n_boot=n_boot, n_perm=n_perm, seed=seed)
     t_stats = time.perf_counter()
+    bar.update()
+    bar.set_description("score: writing")
 
     meta = {
         "scores_version": SCORES_VERSION,
@@ -476,17 +491,20 @@ def score_run(
     tables = ScoreTables(rows, aggregate, sweep_rows, sweep_aggregate, paired, audit, traces, meta, timing, judged)
     if write:
         write_score_tables(run_dir, tables)
+    bar.update()
+    bar.close()
     tables.timing["total_s"] = time.perf_counter() - t_start
     return tables
 
 
 def judge_table(backend, finals: list[tuple[str, CaptionScore, str, Episode, str]]) -> dict:
-    """Grade the final captions with a judge backend and compare with the rubric."""
+    """Grade the final captions with a judge (a CachedBackend, or a Backend) and compare with the rubric."""
     from vlmproprio.scoring import judge_agreement, judge_captions
 
     verdicts = judge_captions(backend, [(text, ep, cond) for _, _, text, ep, cond in finals])
+    identity = backend.identity if isinstance(getattr(backend, "identity", None), dict) else backend.identity()
     return {
-        "backend": dict(backend.identity()),
+        "backend": dict(identity),
         "agreement": judge_agreement([s for _, s, _, _, _ in finals], verdicts),
         "verdicts": {key: v.to_dict() for (key, _, _, _, _), v in zip(finals, verdicts, strict=True)},
     }

@@ -1,66 +1,96 @@
-"""pytest plugin (registered through the ``pytest11`` entry point): the benchmark as pytest tests.
+"""pytest plugin: the benchmark as pytest tests. Inert unless asked for.
 
-After installing the package, ``pytest benchmark/ --model qwen2-vl`` runs the benchmark:
+Installing vlmproprio adds nothing to other projects' pytest sessions: there is no ``pytest11`` entry point.
+The repository's root ``conftest.py`` loads this module and adds the short option names, so in the repository
+``pytest benchmark/ --model qwen2-vl`` runs the benchmark; elsewhere ``pytest -p vlmproprio.pytest_plugin``
+loads it with the namespaced names (``--vlmproprio-model`` ...). Options (the CLI's vocabulary,
+vlmproprio.options):
 
-* ``--model NAME`` (repeatable; default ``reference`` and ``tiny-qwen2-vl``), ``--conditions``,
-  ``--episodes``, ``--mode replay|live|record`` (default replay: answers from the committed cassettes,
-  CPU only), ``--run-dir`` (keep the run, its scores and embeddings), ``--bench-fixtures``.
+* ``--model NAME`` (comma list or repeated; default ``reference`` and ``tiny-qwen2-vl``), ``--conditions``,
+  ``--episodes``, ``--mode auto|replay|live|record`` (default auto: a model's committed cassette when there
+  is one, so CPU only), ``--run-dir`` (keep the run, its scores and embeddings), ``--fixtures-dir`` (pytest
+  owns ``--fixtures``; default as the CLI's ``--fixtures``).
 * Tests that take the ``bench_cell`` fixture are parametrised per (model, episode, condition), with ids
   like ``reference-door_03-both``, so ``-k door_03`` or ``-k both`` select cells and a failure names one.
 * Each model is run once per session, lazily, for exactly the episodes and conditions of the cells
   selected, then scored; a model that cannot run here (no cassette, no weights, no server) is skipped with
   the reason and how to get it. ``reference`` and ``tiny-qwen2-vl`` need nothing and always run.
 
-Kept import-light: pytest loads it in every session, including ones that never touch the benchmark.
+Kept import-light: collecting tests/ with the benchmark's conftest in view must not import torch.
+Session state lives in ``config.stash``.
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
+
+from vlmproprio.locations import FIXTURES_ENV
+from vlmproprio.options import (
+    CONDITIONS_HELP,
+    DEFAULT_CONDITIONS,
+    DEFAULT_MODE,
+    EPISODES_HELP,
+    FIXTURES_HELP,
+    MODE_HELP,
+    MODEL_HELP,
+    MODES,
+    split_list,
+)
 
 DEFAULT_MODELS = ("reference", "tiny-qwen2-vl")
 CELL_FIXTURE = "bench_cell"
 MODEL_FIXTURE = "bench_model"
 
 
-def pytest_addoption(parser: pytest.Parser) -> None:
+# Long, namespaced names only: the plugin may be loaded into sessions that define short options of their own.
+# the repository's conftest.py adds the short spellings of the documented command `pytest benchmark/ --model NAME`.
+OPTIONS: dict[str, dict] = {
+    "model": dict(action="append", metavar="NAME", help=f"{MODEL_HELP}; default: {', '.join(DEFAULT_MODELS)}"),
+    "conditions": dict(action="append", metavar="CONDS", help=CONDITIONS_HELP),
+    "episodes": dict(action="append", metavar="IDS", help=EPISODES_HELP),
+    "mode": dict(default=DEFAULT_MODE, choices=MODES, help=MODE_HELP),
+    "run-dir": dict(default=None, metavar="DIR", help="keep runs, scores and reports here (default: a temp folder)"),
+    # pytest itself owns --fixtures (it lists test fixtures): the benchmark's fixture folder is --fixtures-dir
+    "fixtures-dir": dict(default=None, metavar="DIR", help=FIXTURES_HELP),
+}
+SHORT_ALIASES = {"fixtures-dir": ("--bench-fixtures",)}
+BENCH_KEY = pytest.StashKey["BenchSession"]()
+
+
+def dest(name: str) -> str:
+    return "vlmproprio_" + name.replace("-", "_")
+
+
+def add_options(parser: pytest.Parser, *, short: bool) -> None:
+    """The benchmark's options: ``--vlmproprio-<name>``, or with ``short`` (the conftest) ``--<name>``.
+
+    Both spellings share one destination, so they can be mixed."""
     g = parser.getgroup("vlmproprio", "vlmproprio benchmark")
-    g.addoption(
-        "--model",
-        action="append",
-        dest="vp_models",
-        metavar="NAME",
-        help=f"model to benchmark (repeatable; default: {', '.join(DEFAULT_MODELS)}); see `vlmproprio models`",
-    )
-    g.addoption(
-        "--conditions", dest="vp_conditions", default="all", help="conditions (comma list, paper, controls, all)"
-    )
-    g.addoption("--episodes", dest="vp_episodes", default=None, help="episode ids, comma separated (default: all)")
-    g.addoption(
-        "--mode",
-        dest="vp_mode",
-        default="replay",
-        choices=("replay", "live", "record"),
-        help="replay: answers from cassettes only (default, CPU); live: run the model and fill the cache; "
-        "record: live and write cassettes",
-    )
-    g.addoption("--run-dir", dest="vp_run_dir", default=None, help="where runs, scores and reports go (default: temp)")
-    g.addoption(
-        "--bench-fixtures", dest="vp_fixtures", default=None, help="fixture folder (default: <rootdir>/fixtures)"
-    )
+    for name, kwargs in OPTIONS.items():
+        names = [f"--{name}", *SHORT_ALIASES.get(name, ())] if short else [f"--vlmproprio-{name}"]
+        g.addoption(*names, dest=dest(name), **kwargs)
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    add_options(parser, short=False)
+
+
+def option(config: pytest.Config, name: str):
+    return config.getoption(dest(name))
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    # A wrong --model / --episodes / --conditions / --bench-fixtures is a usage error before collection (one clean
-    # line), but only when given: the plugin is loaded in every pytest session, including other projects'.
+    # A wrong --model / --episodes / --conditions / --fixtures-dir is a usage error before collection (one clean
+    # line), but only when given.
     if (
-        config.getoption("vp_models")
-        or config.getoption("vp_episodes")
-        or config.getoption("vp_conditions") != "all"
-        or config.getoption("vp_fixtures")
+        option(config, "model")
+        or option(config, "episodes")
+        or option(config, "conditions")
+        or option(config, "fixtures-dir")
     ):
         _session(config)
 
@@ -71,7 +101,7 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
     run (each xdist worker runs the models it needs, so workers would record the same cassette or fill the same
     run folder at once), and when only the benchmark's folder is run (each worker would replay and score the
     models again, which costs more than spreading the cells saves). Otherwise None leaves it to xdist."""
-    if config.getoption("vp_mode", "replay") != "replay" or config.getoption("vp_run_dir", None):
+    if option(config, "mode") not in ("replay", "auto") or option(config, "run-dir"):
         return 0
     bench = (Path(config.rootpath) / "benchmark").resolve()
     paths = [Path(str(a).split("::")[0]).resolve() for a in config.args]
@@ -183,48 +213,53 @@ class BenchSession:
 
 
 def _session(config: pytest.Config) -> BenchSession:
-    existing = getattr(config, "_vlmproprio_bench", None)
+    existing = config.stash.get(BENCH_KEY, None)
     if existing is not None:
         return existing
     from vlmproprio.conditions import parse_conditions
     from vlmproprio.episodes import list_episode_ids
+    from vlmproprio.errors import VlmproprioError
+    from vlmproprio.locations import find_repository_fixtures, resolve_fixtures
 
-    fixtures = Path(config.getoption("vp_fixtures") or Path(config.rootpath) / "fixtures")
-    episodes_opt = config.getoption("vp_episodes")
-    episodes = tuple(e.strip() for e in episodes_opt.split(",") if e.strip()) if episodes_opt else ()
+    explicit = option(config, "fixtures-dir")
+    if explicit is None and not os.environ.get(FIXTURES_ENV):
+        # the repository pytest runs in: `pytest /path/to/repo/benchmark` finds its fixtures from any folder
+        explicit = find_repository_fixtures(Path(config.rootpath))
+    try:
+        fixtures = resolve_fixtures(explicit)
+    except VlmproprioError as exc:
+        raise pytest.UsageError(f"--fixtures-dir: {exc}") from None
+    episodes = tuple(split_list(option(config, "episodes")))
     if not episodes:
         episodes = tuple(list_episode_ids(fixtures))
     if not episodes:  # no cells to parametrise: pytest would crash (INTERNALERROR) on the empty parameter list
-        raise pytest.UsageError(
-            f"--bench-fixtures: no episodes in {fixtures / 'episodes'}; point it at a fixture folder"
-        )
+        raise pytest.UsageError(f"--fixtures-dir: no episodes in {fixtures / 'episodes'}; point it at a fixture folder")
     known = set(list_episode_ids(fixtures))
     unknown = [e for e in episodes if e not in known]
     if unknown:
         raise pytest.UsageError(
             f"--episodes: unknown episode(s) {', '.join(unknown)} in {fixtures} (known: {', '.join(sorted(known))})"
         )
-    models = tuple(config.getoption("vp_models") or DEFAULT_MODELS)
+    models = tuple(split_list(option(config, "model")) or DEFAULT_MODELS)
     from vlmproprio.backends.registry import model_slug
-    from vlmproprio.errors import VlmproprioError
 
     try:
         for m in models:
             model_slug(m)
-        conditions = tuple(c.name for c in parse_conditions(config.getoption("vp_conditions")))
+        conditions = tuple(c.name for c in parse_conditions(option(config, "conditions") or DEFAULT_CONDITIONS))
     except VlmproprioError as exc:
         raise pytest.UsageError(str(exc)) from None
-    run_dir = config.getoption("vp_run_dir")
+    run_dir = option(config, "run-dir")
     session = BenchSession(
         config=config,
         fixtures=fixtures,
-        mode=config.getoption("vp_mode"),
+        mode=option(config, "mode"),
         run_root=Path(run_dir) if run_dir else None,
         models=models,
         conditions=conditions,
         episodes=episodes,
     )
-    config._vlmproprio_bench = session  # type: ignore[attr-defined]
+    config.stash[BENCH_KEY] = session
     return session
 
 
@@ -241,7 +276,7 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
 @pytest.hookimpl(trylast=True)
 def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config, items: list[pytest.Item]) -> None:
     """Record which cells survived -k / deselection, so each model runs exactly what is needed."""
-    bench = getattr(config, "_vlmproprio_bench", None)
+    bench = config.stash.get(BENCH_KEY, None)
     if bench is None:
         return
     for item in items:

@@ -5,7 +5,9 @@
 
 Modes (see vlmproprio.cache): ``replay`` answers only from the model's cassette in
 ``<fixtures>/responses/`` (the reference captioner needs none), ``live`` runs the model and uses and
-fills the response cache, ``record`` is live and also writes the answers it used to the cassette.
+fills the response cache, ``record`` is live and also writes the answers it used to the cassette;
+``auto`` (the CLI's and the benchmark's default) is replay for a model with a cassette, else live, decided per
+model (run.json records the mode each model ran in).
 """
 
 from __future__ import annotations
@@ -134,15 +136,16 @@ def _write_run_file(plan: RunPlan, episodes: list[Episode], runs: list[ModelRun]
 
 
 def run_model(name: str, plan: RunPlan, episodes: list[Episode], peers: list[Episode], settings) -> ModelRun:
-    from vlmproprio.backends.registry import cassette_path, create_backend, model_slug
+    from vlmproprio.backends.registry import cassette_path, create_backend, model_slug, resolve_mode
     from vlmproprio.cache import CachedBackend, ResponseCache, default_cache_dir
 
     slug = model_slug(name)
-    backend = create_backend(name, plan.mode, settings)
+    mode = resolve_mode(name, plan.mode, settings)  # auto: replay with a cassette, else live
+    backend = create_backend(name, mode, settings)
     # replay answers strictly from the committed cassette: a stale local cache must not mask a missing answer
-    cache = None if plan.mode == "replay" else ResponseCache(plan.cache_dir or default_cache_dir())
+    cache = None if mode == "replay" else ResponseCache(plan.cache_dir or default_cache_dir())
     try:
-        cached = CachedBackend(backend, mode=plan.mode, cache=cache, model=slug)
+        cached = CachedBackend(backend, mode=mode, cache=cache, model=slug)
         pipeline = plan.pipeline_for(name)
         transcripts = caption_episodes(
             episodes,
@@ -157,13 +160,13 @@ def run_model(name: str, plan: RunPlan, episodes: list[Episode], peers: list[Epi
         for t in transcripts:
             write_transcript(plan.out, t)
         cassette = None
-        if plan.mode == "record":
+        if mode == "record":
             path = cassette_path(name, settings.cassette_dir)
             cached.export_cassette(path)
             cassette = str(path)
             register_fixture_file(path)
         return ModelRun(
-            name, slug, plan.mode, pipeline.to_dict(), dict(cached.identity), dict(cached.stats), transcripts, cassette
+            name, slug, mode, pipeline.to_dict(), dict(cached.identity), dict(cached.stats), transcripts, cassette
         )
     finally:
         backend.close()

@@ -14,22 +14,27 @@ only applies them:
   ignored ("without closing"). Objects are never negated.
 * A direction word binds to the nearest motion verb before it in its clause
   ("turn the handle *down*"); unbound direction words are mentions only.
+* Some verbs take their meaning from what follows (door.json ``contextual``): "push the lever down" turns
+  the handle, "push the door" is the opposite of the pull that opens it. Phrasal verbs may be split
+  (``gapped``: "set it down", "transfers the box from A to B"). A failure cue ("... but fails") negates
+  the action before it.
 * Row and side words ("far", "left") are compartment words only near a bin noun
   or as a row+side pair ("far left"); a bin phrase led by a source cue ("from the
-  right bin") is where the object came from and is ignored.
+  right bin") is where the object came from and is ignored. A compartment may also be named without
+  the camera: near/far from the robot and next to / away from the source bin.
 
 Items, each ``mentioned`` / ``correct`` / ``wrong`` (mentioned-but-wrong):
 
 * object: correct when the episode's object is named and no other known object is.
 * action: correct when every requirement of the task (door: open or pull;
   pick_place: pick or lift, and place) is met by a non-negated term and nothing
-  contradicts it (a wrong action such as "close", or a negated expected one).
-* trajectory: door -- at least one direction bound to its motion is the expected
-  one (turn: down; pull: backward / toward the robot) and none is the opposite.
-  pick_place -- the target compartment is named with both its row (near/far) and
-  its side (left/right), no other row or side is named, and no bound direction
-  is the opposite of the expected one (lift: up; place/transport: the direction
-  words of the ground-truth transport phase).
+  contradicts it (a wrong action such as "close" or "push the door", or a negated required one).
+* trajectory: door -- at least one direction bound to its motion is expected and none is the opposite;
+  pick_place -- the target compartment is named by its row (near/far, or top/bottom in the image) and its
+  column (left/right, or next to / away from the source bin), nothing names another one, and no bound
+  direction is the opposite of an expected one. Expected directions come from the episode's ground truth
+  (``expectation_for``): the hand's net displacement in the phase a motion names, read from ``steps.npz``,
+  and the camera's pose for words that depend on it (image left/right, top/bottom).
 
 Every hit keeps its span, matched text and lexicon entry, so a report can show
 why a caption scored as it did. A missing or empty caption scores as an empty
@@ -41,10 +46,14 @@ from __future__ import annotations
 import hashlib
 import json
 import re
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from functools import cache, lru_cache
 from importlib import resources
+from pathlib import Path
+
+import numpy as np
 
 from vlmproprio.episodes import Episode
 from vlmproprio.errors import VlmproprioError
@@ -52,6 +61,8 @@ from vlmproprio.errors import VlmproprioError
 ITEMS = ("object", "action", "trajectory")
 LEXICON_PACKAGE = "vlmproprio/lexicons"
 COMMON_LEXICON = "common.json"
+CAMERAS_FILE = "cameras.json"
+NOT_TASKS = (COMMON_LEXICON, "judge.json", CAMERAS_FILE)
 
 # Verdicts a hit can carry; only the first three count as keyword hits.
 CORRECT, WRONG, MENTIONED, IGNORED = "correct", "wrong", "mentioned", "ignored"
@@ -70,7 +81,9 @@ class ScoringError(VlmproprioError):
 
 @dataclass(frozen=True)
 class Tag:
-    kind: str  # object | action | wrong_action | direction | row | side | noun | negation | neutral | source
+    # object | action | wrong_action | contextual | direction | row | image_row | side | column | noun
+    # | negation | failure | neutral | source
+    kind: str
     value: str
     entry: str  # where in the lexicon: "door.json:action.groups.open"
 
@@ -85,9 +98,23 @@ class Term:
 class Motion:
     name: str
     groups: tuple[str, ...]
-    expected: tuple[str, ...] = ()
-    expected_from_phase: str = ""
+    expected: tuple[str, ...] = ()  # constant directions (a lexicon without ground-truth motion)
+    from_phase: str = ""  # regex of the phase whose hand displacement names the directions
+    axes: tuple[str, ...] = ("x", "y", "z")
     min_share: float = 0.5
+    return_phase: str = ""  # the motion reverses in this phase (a lever springing back)
+    return_cues: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Contextual:
+    """A verb whose meaning depends on the first object or direction after it (door.json action.contextual)."""
+
+    name: str
+    window: int
+    as_group: str
+    when_next_is: frozenset[str]
+    entry: str
 
 
 @dataclass(frozen=True)
@@ -111,6 +138,11 @@ class Lexicon:
     motions: tuple[Motion, ...]
     compartment: CompartmentRules | None
     index: dict[str, tuple[Term, ...]]
+    keep_together: frozenset[tuple[str, str]] = frozenset()
+    contextual: dict[str, Contextual] = field(default_factory=dict)
+    gapped_window: int = 0
+    gapped: dict[str, tuple[tuple[str, Tag], ...]] = field(default_factory=dict)  # first word -> (second, tag)
+    gapped_needs: dict[str, frozenset[str]] = field(default_factory=dict)  # group -> words one of which must be between
 
     def object_key(self, name: str) -> str:
         """The lexicon entry of an episode's target_object ("door", "cereal", "cereal box" -> "cereal")."""
@@ -149,7 +181,7 @@ def _read_lexicon_file(name: str) -> tuple[dict, bytes]:
 
 def available_tasks() -> list[str]:
     names = [p.name for p in _lexicon_dir().iterdir() if p.name.endswith(".json")]
-    return sorted(n[:-5] for n in names if n not in (COMMON_LEXICON, "judge.json"))
+    return sorted(n[:-5] for n in names if n not in NOT_TASKS)
 
 
 @cache
@@ -189,6 +221,8 @@ def _build_lexicon(task: str, common: dict, spec: dict, fname: str, raw: bytes) 
             add(w, Tag("direction", d, f"{c}:directions.terms.{d}"))
     for w in common["negation"]["cues"]:
         add(w, Tag("negation", w, f"{c}:negation.cues"))
+    for w in common["negation"].get("failure_cues", ()):
+        add(w, Tag("failure", w, f"{c}:negation.failure_cues"))
     for w in common["neutral"]["terms"]:
         add(w, Tag("neutral", w, f"{c}:neutral.terms"))
 
@@ -198,6 +232,32 @@ def _build_lexicon(task: str, common: dict, spec: dict, fname: str, raw: bytes) 
             add(w, Tag("action", group, f"{fname}:action.groups.{group}"))
     for w in action["wrong"]:
         add(w, Tag("wrong_action", w, f"{fname}:action.wrong"))
+    contextual = {}
+    for name, spec_c in action.get("contextual", {}).items():
+        if name == "about":
+            continue
+        entry = f"{fname}:action.contextual.{name}"
+        if spec_c["as_group"] not in action["groups"]:
+            raise ValueError(f"contextual {name!r}: group {spec_c['as_group']!r} is not in action.groups")
+        for w in spec_c["terms"]:
+            add(w, Tag("contextual", name, entry))
+        contextual[name] = Contextual(
+            name,
+            int(spec_c["window"]),
+            spec_c["as_group"],
+            frozenset(" ".join(_words(w)) for w in spec_c["when_next_is"]),
+            entry,
+        )
+    gapped: dict[str, list[tuple[str, Tag]]] = {}
+    gap = action.get("gapped", {})
+    for group, words in gap.get("terms", {}).items():
+        if group not in action["groups"]:
+            raise ValueError(f"gapped group {group!r} is not in action.groups")
+        for w in words:
+            toks = _words(w)
+            if len(toks) != 2:
+                raise ValueError(f"gapped term {w!r} must be two words")
+            gapped.setdefault(toks[0], []).append((toks[1], Tag("action", group, f"{fname}:action.gapped.{group}")))
     required = tuple(tuple(alts) for alts in action["required"])
     for alts in required:
         for g in alts:
@@ -210,13 +270,19 @@ def _build_lexicon(task: str, common: dict, spec: dict, fname: str, raw: bytes) 
         for g in m["groups"]:
             if g not in action["groups"]:
                 raise ValueError(f"motion {m['name']!r}: group {g!r} is not in action.groups")
+        axes = tuple(m.get("axes", ("x", "y", "z")))
+        if not set(axes) <= set(AXES):
+            raise ValueError(f"motion {m['name']!r}: axes {axes} not among x, y, z")
         motions.append(
             Motion(
                 name=m["name"],
                 groups=tuple(m["groups"]),
                 expected=tuple(m.get("expected", ())),
-                expected_from_phase=m.get("expected_from_phase", ""),
+                from_phase=m.get("from_phase", m.get("expected_from_phase", "")),
+                axes=axes,
                 min_share=float(m.get("min_share", 0.5)),
+                return_phase=m.get("return_phase", ""),
+                return_cues=tuple(m.get("return_cues", ())),
             )
         )
     compartment = None
@@ -231,6 +297,12 @@ def _build_lexicon(task: str, common: dict, spec: dict, fname: str, raw: bytes) 
         for side, words in comp["sides"].items():
             for w in words:
                 add(w, Tag("side", side, f"{fname}:trajectory.compartment.sides.{side}"))
+        for where, words in comp.get("image_rows", {}).items():
+            for w in words:
+                add(w, Tag("image_row", where, f"{fname}:trajectory.compartment.image_rows.{where}"))
+        for col, words in comp.get("columns", {}).items():
+            for w in words:
+                add(w, Tag("column", col, f"{fname}:trajectory.compartment.columns.{col}"))
         for w in comp["source_cues"]:
             add(w, Tag("source", w, f"{fname}:trajectory.compartment.source_cues"))
 
@@ -255,10 +327,83 @@ def _build_lexicon(task: str, common: dict, spec: dict, fname: str, raw: bytes) 
         motions=tuple(motions),
         compartment=compartment,
         index=frozen_index,
+        keep_together=frozenset(tuple(_words(w)) for w in breaks.get("keep_together", ())),
+        contextual=contextual,
+        gapped_window=int(gap.get("window", 0)),
+        gapped={k: tuple(v) for k, v in gapped.items()},
+        gapped_needs={g: frozenset(w) for g, w in gap.get("needs_between", {}).items()},
     )
 
 
 # ---------------------------------------------------------------------------------------------- expectation
+
+AXES = ("x", "y", "z")
+# Directions whose meaning never depends on the camera: the robot's frame (forward = +x, left = +y, up = +z).
+ROBOT_VECTORS: dict[str, tuple[float, float, float]] = {
+    "forward": (1.0, 0.0, 0.0),
+    "backward": (-1.0, 0.0, 0.0),
+    "robot_left": (0.0, 1.0, 0.0),
+    "robot_right": (0.0, -1.0, 0.0),
+    "up": (0.0, 0.0, 1.0),
+    "down": (0.0, 0.0, -1.0),
+}
+# A hand displacement shorter than this (m) names no direction (as vlmproprio.primitives.MIN_MOVE_M).
+MIN_MOVE_M = 0.01
+# A camera axis counts as one of the robot's when their cosine is at least this.
+AXIS_COS = 0.5
+
+
+@dataclass(frozen=True)
+class CameraAxes:
+    """Image right, image up and viewing direction of an episode's camera, unit vectors in the robot's frame."""
+
+    right: tuple[float, float, float]
+    up: tuple[float, float, float]
+    view: tuple[float, float, float]
+    source: str
+
+
+@lru_cache(maxsize=1)
+def _camera_table() -> dict:
+    data, _ = _read_lexicon_file(CAMERAS_FILE)
+    if not isinstance(data.get("envs"), dict):
+        raise ScoringError(f"lexicon {LEXICON_PACKAGE}/{CAMERAS_FILE}: missing 'envs'")
+    return data["envs"]
+
+
+def _axes(d: dict, where: str) -> CameraAxes:
+    try:
+        vecs = [np.asarray(d[k], dtype=float) for k in ("right", "up", "view")]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ScoringError(f"{where}: camera axes need right, up and view as 3-vectors ({exc})") from exc
+    if any(v.shape != (3,) or not np.isfinite(v).all() or np.linalg.norm(v) < 1e-6 for v in vecs):
+        raise ScoringError(f"{where}: camera axes need right, up and view as non-zero 3-vectors")
+    r, u, v = (tuple(float(x) for x in vec / np.linalg.norm(vec)) for vec in vecs)
+    return CameraAxes(r, u, v, where)
+
+
+def camera_axes(episode: Episode) -> CameraAxes | None:
+    """The pose of the episode's camera: its own (episode.json extra.camera_axes, written by the demo importer),
+    else the shipped table (lexicons/cameras.json by env and camera name), else None (unknown camera)."""
+    own = episode.extra.get("camera_axes") if isinstance(episode.extra, dict) else None
+    if own is not None:
+        return _axes(own, f"episode {episode.episode_id}: episode.json extra.camera_axes")
+    for env_prefix, cams in _camera_table().items():
+        if episode.env_name.startswith(env_prefix) and episode.camera in cams:
+            return _axes(cams[episode.camera], f"{CAMERAS_FILE}: {env_prefix}/{episode.camera}")
+    return None
+
+
+def direction_vectors(camera: CameraAxes | None) -> dict[str, np.ndarray]:
+    """Unit vector of every direction value in the robot's frame; plain left/right are the image's when the
+    camera is known, else the robot's (the shipped bin camera's convention: image left = robot left)."""
+    out = {k: np.asarray(v) for k, v in ROBOT_VECTORS.items()}
+    if camera is None:
+        out["left"], out["right"] = out["robot_left"], out["robot_right"]
+    else:
+        out["right"] = np.asarray(camera.right)
+        out["left"] = -np.asarray(camera.right)
+    return out
 
 
 @dataclass(frozen=True)
@@ -267,6 +412,9 @@ class MotionExpectation:
     groups: tuple[str, ...]
     expected: tuple[str, ...]
     source: str  # where ``expected`` comes from, for the audit
+    opposite: tuple[str, ...] = ()
+    returns: tuple[str, ...] = ()  # directions of the motion's return phase (the lever springing back up)
+    return_cues: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -276,41 +424,124 @@ class Expectation:
     task: str
     target_object: str
     target_row: str | None
-    target_side: str | None
+    target_side: str | None  # the robot's side of the target compartment (left | right)
     motions: tuple[MotionExpectation, ...]
+    image_side: str | None = None  # the side word in the camera's image; None when the camera does not tell
+    image_rows: tuple[tuple[str, str], ...] = ()  # (image word top|bottom, row near|far) for this camera
+    target_column: str | None = None  # next_to_source | away_from_source
+    camera: str = ""  # where the camera pose came from
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
-def phase_directions(episode: Episode, phase_pattern: str, min_share: float) -> tuple[tuple[str, ...], str]:
-    """Direction words named by at least ``min_share`` of the moving frames in the phases matching the pattern."""
+def _consistent_steps(episode: Episode):
+    """The full-rate states when they belong to this episode (one row per sim step), else None."""
+    path = episode.root / "steps.npz"
+    if not path.is_file():
+        return None
+    try:
+        st = episode.step_states
+    except VlmproprioError:
+        return None
+    if len(st.step) != episode.steps + 1 or (len(st.phase) and int(st.phase.max()) >= len(episode.phase_names)):
+        return None
+    return st
+
+
+def phase_displacement(episode: Episode, phase_pattern: str) -> tuple[np.ndarray | None, str]:
+    """The hand's net displacement (m, robot frame) over the steps of the phases matching the pattern.
+
+    From ``steps.npz`` when the episode has one; else (an episode without full-rate states) a pseudo
+    displacement from the sampled frames' direction labels, one unit vector per moving frame."""
     pat = re.compile(phase_pattern, re.IGNORECASE)
+    st = _consistent_steps(episode)
+    if st is not None:
+        names = [i for i, n in enumerate(episode.phase_names) if pat.search(n)]
+        idx = np.flatnonzero(np.isin(st.phase, names))
+        if not len(idx):
+            return None, f"steps.npz: no step in a phase matching {phase_pattern!r}"
+        first, last = int(idx[0]), int(idx[-1])
+        delta = st.ee[last, :3] - st.ee[first, :3]
+        where = ", ".join(repr(episode.phase_names[i]) for i in names)
+        d = "(" + ", ".join(f"{x:+.3f}" for x in delta) + ")"
+        return (
+            delta,
+            f"steps.npz: hand displacement {d} m over steps {int(st.step[first])}..{int(st.step[last])} ({where})",
+        )
     moving = [f for f in episode.frames if pat.search(f.phase) and f.direction not in ("still", "")]
     if not moving:
-        return (), f"ground truth: no moving frame in a phase matching {phase_pattern!r}"
-    counts: dict[str, int] = {}
+        return None, f"ground truth: no moving frame in a phase matching {phase_pattern!r}"
+    total = np.zeros(3)
     for f in moving:
-        for w in f.direction.split("+"):
-            counts[w] = counts.get(w, 0) + 1
-    words = tuple(sorted(w for w, n in counts.items() if n >= min_share * len(moving)))
+        v = sum(
+            (np.asarray(ROBOT_VECTORS["robot_" + w if w in ("left", "right") else w]) for w in f.direction.split("+")),
+            np.zeros(3),
+        )
+        total += v / np.linalg.norm(v)
     idx = [f.index for f in moving]
-    return words, f"ground truth: {len(moving)} moving frames {idx[0]}..{idx[-1]} in phase {moving[0].phase!r}"
+    return (
+        total,
+        f"ground truth: direction labels of {len(moving)} moving frames {idx[0]}..{idx[-1]} in phase {moving[0].phase!r}",
+    )
+
+
+def directions_of(delta: np.ndarray | None, axes: Sequence[str], min_share: float, vectors: dict[str, np.ndarray]):
+    """(expected, opposite) direction values for a displacement restricted to ``axes``: a value is expected
+    when its unit vector carries at least ``min_share`` of the displacement, opposite when it carries that
+    much against it."""
+    if delta is None:
+        return (), ()
+    d = np.array([delta[i] if a in axes else 0.0 for i, a in enumerate(AXES)])
+    norm = float(np.linalg.norm(d))
+    if norm < MIN_MOVE_M:
+        return (), ()
+    share = {k: float(d @ v) / norm for k, v in vectors.items()}
+    return tuple(sorted(k for k, c in share.items() if c >= min_share)), tuple(
+        sorted(k for k, c in share.items() if c <= -min_share)
+    )
+
+
+def _image_words(cam: CameraAxes | None) -> tuple[str | None, tuple[tuple[str, str], ...]]:
+    """(the image side of the robot's left, image row words -> near/far) for a camera; None/() where it does not tell."""
+    if cam is None:  # the shipped convention: image left = robot left, top of the image = far from the robot
+        return "left", (("top", "far"), ("bottom", "near"))
+    left_in_image = -float(np.asarray(ROBOT_VECTORS["robot_left"]) @ np.asarray(cam.right))
+    side = "left" if left_in_image >= AXIS_COS else "right" if left_in_image <= -AXIS_COS else None
+    far_up = float(np.asarray(ROBOT_VECTORS["forward"]) @ np.asarray(cam.up))
+    rows: tuple[tuple[str, str], ...] = ()
+    if far_up >= AXIS_COS:
+        rows = (("top", "far"), ("bottom", "near"))
+    elif far_up <= -AXIS_COS:
+        rows = (("top", "near"), ("bottom", "far"))
+    return side, rows
 
 
 def expectation_for(episode: Episode, lexicon: Lexicon | None = None) -> Expectation:
     lex = lexicon or load_lexicon(episode.task)
+    cam = camera_axes(episode)
+    vectors = direction_vectors(cam)
     motions = []
     for m in lex.motions:
-        if m.expected_from_phase:
-            expected, source = phase_directions(episode, m.expected_from_phase, m.min_share)
+        opposite: tuple[str, ...] = ()
+        returns: tuple[str, ...] = ()
+        if m.from_phase:
+            delta, source = phase_displacement(episode, m.from_phase)
+            expected, opposite = directions_of(delta, m.axes, m.min_share, vectors)
+            if m.return_phase:
+                back, back_source = phase_displacement(episode, m.return_phase)
+                returns, _ = directions_of(back, m.axes, m.min_share, vectors)
+                source += f"; returns {'/'.join(returns) or 'nowhere'} from {back_source}"
         else:
             expected, source = m.expected, f"lexicon {lex.task}.json"
+            opposite = tuple(sorted({lex.opposite[d] for d in expected if d in lex.opposite}))
         unknown = [d for d in expected if d not in lex.opposite]
         if unknown:
             raise ScoringError(f"episode {episode.episode_id}: unknown direction words {unknown} for motion {m.name!r}")
-        motions.append(MotionExpectation(m.name, m.groups, expected, source))
-    row = side = None
+        returns = tuple(d for d in returns if d not in expected)
+        motions.append(MotionExpectation(m.name, m.groups, expected, source, opposite, returns, tuple(m.return_cues)))
+    row = side = column = image_side = None
+    image_rows: tuple[tuple[str, str], ...] = ()
     if lex.compartment is not None:
         if episode.target_bin is None:
             raise ScoringError(f"episode {episode.episode_id}: task {episode.task} needs a target_bin in episode.json")
@@ -319,12 +550,21 @@ def expectation_for(episode: Episode, lexicon: Lexicon | None = None) -> Expecta
             raise ScoringError(
                 f"episode {episode.episode_id}: target_bin row/side {row!r}/{side!r} not near|far, left|right"
             )
+        # robosuite's PickPlace.not_in_bin index: bit 1 set = the column away from the source bin
+        column = "away_from_source" if episode.target_bin.index & 2 else "next_to_source"
+        left_word, image_rows = _image_words(cam)
+        if left_word is not None:
+            image_side = side if left_word == "left" else lex.opposite[side]
     return Expectation(
         task=episode.task,
         target_object=lex.object_key(episode.target_object),
         target_row=row,
         target_side=side,
         motions=tuple(motions),
+        image_side=image_side,
+        image_rows=image_rows,
+        target_column=column,
+        camera=cam.source if cam else "unknown camera: image words read in the robot's frame",
     )
 
 
@@ -395,10 +635,13 @@ class CaptionScore:
 def tokenize(text: str, lexicon: Lexicon) -> list[Token]:
     out = []
     clause = 0
-    for m in _TOKEN_RE.finditer(text):
-        tok = m.group(0).lower().replace("’", "'")
+    matches = list(_TOKEN_RE.finditer(text))
+    words = [m.group(0).lower().replace("’", "'") for m in matches]
+    for i, m in enumerate(matches):
+        tok = words[i]
         is_word = tok not in lexicon.clause_punct
-        if not is_word or tok in lexicon.clause_words:
+        kept = i + 1 < len(words) and (tok, words[i + 1]) in lexicon.keep_together
+        if not is_word or (tok in lexicon.clause_words and not kept):
             clause += 1
         out.append(Token(tok, m.start(), m.end(), clause, is_word))
     return out
@@ -441,7 +684,35 @@ def _match_terms(tokens: list[Token], lex: Lexicon) -> list[_Cand]:
         else:
             cands.append(found)
             i = found.last + 1
-    return cands
+    return cands + _match_gapped(tokens, lex, cands)
+
+
+def _match_gapped(tokens: list[Token], lex: Lexicon, cands: list[_Cand]) -> list[_Cand]:
+    """Split phrasal verbs ("set it down"): extra candidates spanning verb..particle; words between keep theirs."""
+    spans = {(c.first, c.last) for c in cands}
+    objects = {c.first for c in cands if _tag(c, ("object",))}
+    out = []
+    for i, tok in enumerate(tokens):
+        own = {(t.kind, t.value) for c in cands if c.first == i for t in c.term.tags}
+        for second, tag in lex.gapped.get(tok.text, ()) if tok.is_word else ():
+            for j in range(i + 1, min(len(tokens), i + lex.gapped_window + 2)):
+                if not tokens[j].is_word or tokens[j].clause != tok.clause:
+                    break
+                if tokens[j].text == second:
+                    needs = lex.gapped_needs.get(tag.value)
+                    between = set(range(i + 1, j))
+                    has_needed = needs is None or any(
+                        tokens[k].text in needs or ("<object>" in needs and k in objects) for k in between
+                    )
+                    # skip when the unsplit phrase already matched, or the verb alone means the same
+                    if (i, j) not in spans and (tag.kind, tag.value) not in own and has_needed:
+                        term = Term((tok.text, second), (tag,))
+                        out.append(_Cand(i, j, term, tag.kind, tag.value, tag.entry))
+                    break
+            else:
+                continue
+            break
+    return out
 
 
 def _tag(cand: _Cand, kinds: Sequence[str]) -> Tag | None:
@@ -464,19 +735,63 @@ def _resolve(cands: list[_Cand], tokens: list[Token], lex: Lexicon) -> list[_Can
         )
 
     def pair(c: _Cand, kind: str) -> bool:
-        other = "side" if kind == "row" else "row"
-        return any(o is not c and _tag(o, (other,)) and (o.first == c.last + 1 or c.first == o.last + 1) for o in cands)
+        others = ("side",) if kind in ("row", "image_row") else ("row", "image_row")
+        return any(o is not c and _tag(o, others) and (o.first == c.last + 1 or c.first == o.last + 1) for o in cands)
 
     for c in cands:
-        comp = _tag(c, ("row", "side")) if lex.compartment else None
-        if comp is not None and (near_noun(c) or pair(c, comp.kind)):
+        if c.kind:  # split phrasal verbs come tagged
+            continue
+        column = _tag(c, ("column",)) if lex.compartment else None
+        comp = _tag(c, ("row", "image_row", "side")) if lex.compartment else None
+        if column is not None:
+            chosen = column
+        elif comp is not None and (near_noun(c) or pair(c, comp.kind)):
             chosen = comp
         else:
-            order = ("neutral", "negation", "source", "noun", "object", "wrong_action", "action", "direction")
+            order = (
+                "neutral",
+                "negation",
+                "failure",
+                "source",
+                "noun",
+                "object",
+                "wrong_action",
+                "contextual",
+                "action",
+                "direction",
+            )
             chosen = next((t for k in order for t in c.term.tags if t.kind == k), None)
         if chosen is not None:
             c.kind, c.value, c.entry = chosen.kind, chosen.value, chosen.entry
-    return [c for c in cands if c.kind]
+    out = sorted((c for c in cands if c.kind), key=lambda c: (c.first, c.last))
+    _resolve_contextual(out, tokens, lex)
+    return out
+
+
+def _resolve_contextual(cands: list[_Cand], tokens: list[Token], lex: Lexicon) -> None:
+    """'push the lever down' turns the handle; 'push the door' is a wrong action (door.json action.contextual)."""
+    for c in cands:
+        if c.kind != "contextual":
+            continue
+        rule = lex.contextual[c.value]
+        clause = tokens[c.first].clause
+        nxt = next(
+            (
+                o
+                for o in cands
+                if o.first > c.last
+                and o.kind in ("object", "direction", "noun")
+                and tokens[o.first].clause == clause
+                and o.first - c.last <= rule.window
+            ),
+            None,
+        )
+        said = " ".join(t.text for t in tokens[nxt.first : nxt.last + 1]) if nxt else ""
+        if nxt is not None and (said in rule.when_next_is or said.split()[-1] in rule.when_next_is):
+            c.kind, c.value = "action", rule.as_group
+        else:
+            c.kind, c.value = "wrong_action", rule.name
+        c.entry = rule.entry
 
 
 def _negated(c: _Cand, cands: list[_Cand], tokens: list[Token], lex: Lexicon) -> bool:
@@ -496,8 +811,10 @@ def score_text(text: str, expectation: Expectation, lexicon: Lexicon) -> Caption
     tokens = tokenize(text, lexicon)
     cands = _resolve(_match_terms(tokens, lexicon), tokens, lexicon)
     for c in cands:
-        if c.kind in ("action", "wrong_action", "direction", "row", "side"):
+        if c.kind in ("action", "wrong_action", "direction", "row", "image_row", "side", "column"):
             c.negated = _negated(c, cands, tokens, lexicon)
+    failed = _failed_actions(cands, tokens)
+    required = {g for alts in lexicon.required for g in alts}
     motion_of_group = {g: m for m in expectation.motions for g in m.groups}
     hits = []
     for c in cands:
@@ -505,6 +822,12 @@ def score_text(text: str, expectation: Expectation, lexicon: Lexicon) -> Caption
         if c.kind == "object":
             item = "object"
             verdict = CORRECT if c.value == expectation.target_object else WRONG
+        elif c.kind == "action" and id(c) in failed:
+            item, verdict, note = "action", WRONG, "followed by a failure cue"
+        elif c.kind == "action" and c.negated and c.value not in required:
+            # "the handle is not turned up but down": denying a sub-step the task does not require is no
+            # wrong action; its direction words are judged on their own
+            item, verdict, note = "action", MENTIONED, "negated, not a required action"
         elif c.kind == "action":
             item, verdict = "action", (WRONG if c.negated else CORRECT)
             note = "negated expected action" if c.negated else ""
@@ -514,7 +837,7 @@ def score_text(text: str, expectation: Expectation, lexicon: Lexicon) -> Caption
         elif c.kind == "direction":
             item = "trajectory"
             verdict, note = _direction_verdict(c, cands, tokens, motion_of_group, lexicon)
-        elif c.kind in ("row", "side"):
+        elif c.kind in ("row", "image_row", "side", "column"):
             item = "trajectory"
             verdict, note = _compartment_verdict(c, cands, tokens, expectation, lexicon)
         else:
@@ -526,22 +849,50 @@ def score_text(text: str, expectation: Expectation, lexicon: Lexicon) -> Caption
     return _summarise(text, hits, expectation, lexicon)
 
 
+def _failed_actions(cands: list[_Cand], tokens: list[Token]) -> set[int]:
+    """ids of the action candidates that a later failure cue ("... but fails") negates: the nearest action
+    before each cue in the same sentence."""
+    out = set()
+    for f in cands:
+        if f.kind != "failure":
+            continue
+        for c in sorted((c for c in cands if c.kind == "action" and c.last < f.first), key=lambda c: -c.last):
+            if any(t.text in (".", "!", "?") for t in tokens[c.last : f.first]):
+                break
+            out.add(id(c))
+            break
+    return out
+
+
 def _direction_verdict(c, cands, tokens, motion_of_group, lex) -> tuple[str, str]:
     clause = tokens[c.first].clause
     before = [
         o
         for o in cands
-        if o.kind == "action" and o.value in motion_of_group and o.last < c.first and tokens[o.first].clause == clause
+        if o.kind == "action" and o.value in motion_of_group and o.first < c.first and tokens[o.first].clause == clause
     ]
     if not before:
         return (IGNORED if c.negated else MENTIONED), "not bound to a motion verb"
-    verb = max(before, key=lambda o: o.last)
+    # the nearest verb before it; a split phrasal verb ("set it down") owns its particle
+    verb = max(before, key=lambda o: (o.first, o.last))
     motion = motion_of_group[verb.value]
     note = f"bound to {motion.name!r} ({tokens[verb.first].text}); expected {'/'.join(motion.expected) or 'nothing'}"
-    opposites = {lex.opposite[d] for d in motion.expected}
     if c.value in motion.expected:
         return (WRONG if c.negated else CORRECT), note
-    if c.value in opposites:
+    if c.value in motion.returns and not c.negated:
+        cue = any(t.text in motion.return_cues for t in tokens if t.clause == clause)
+        said_main = any(
+            o.kind == "direction"
+            and o.last < c.first
+            and o.value in motion.expected
+            and not o.negated
+            and any(v.value in motion.groups for v in cands if v.kind == "action" and v.last < o.first)
+            for o in cands
+        )
+        if cue or said_main:
+            why = "a return cue in its clause" if cue else "after the main direction"
+            return CORRECT, f"{note}; the return ({'/'.join(motion.returns)}) with {why}"
+    if c.value in motion.opposite:
         return (IGNORED if c.negated else WRONG), note
     return (IGNORED if c.negated else MENTIONED), note
 
@@ -551,9 +902,24 @@ def _compartment_verdict(c, cands, tokens, exp: Expectation, lex) -> tuple[str, 
     window = lex.compartment.window
     if any(o.kind == "source" and tokens[o.first].clause == clause and 0 < c.first - o.last <= window for o in cands):
         return IGNORED, "source bin (led by a source cue)"
-    target = exp.target_row if c.kind == "row" else exp.target_side
-    ok = c.value == target
-    note = f"target {c.kind} {target}"
+    value, target = c.value, None
+    if c.kind == "row":
+        target = exp.target_row
+    elif c.kind == "image_row":
+        value = dict(exp.image_rows).get(c.value)
+        target = exp.target_row
+        if value is None:
+            return MENTIONED, f"the camera ({exp.camera}) does not say which row is '{c.value}' in its image"
+    elif c.kind == "column":
+        target = exp.target_column
+    elif c.value.startswith("robot_"):
+        target = f"robot_{exp.target_side}"
+    else:
+        target = exp.image_side
+        if target is None:
+            return MENTIONED, f"the camera ({exp.camera}) does not show the robot's left/right as image sides"
+    ok = value == target
+    note = f"target {c.kind} {target}" + (f" ('{c.value}' = {value})" if value != c.value else "")
     if c.negated:
         return (WRONG if ok else IGNORED), note
     return (CORRECT if ok else WRONG), note
@@ -576,8 +942,8 @@ def _summarise(text: str, hits: list[Hit], exp: Expectation, lex: Lexicon) -> Ca
     traj = of("trajectory")
     traj_wrong = any(h.verdict == WRONG for h in traj)
     if lex.compartment is not None:
-        good = {(h.kind, h.value) for h in traj if h.verdict == CORRECT and h.kind in ("row", "side")}
-        ok = ("row", exp.target_row) in good and ("side", exp.target_side) in good
+        good = {h.kind for h in traj if h.verdict == CORRECT}
+        ok = bool(good & {"row", "image_row"}) and bool(good & {"side", "column"})
     else:
         ok = any(h.verdict == CORRECT for h in traj)
     trajectory_score = ItemScore(bool(traj), ok and not traj_wrong, traj_wrong)
@@ -627,13 +993,36 @@ def judge_prompt() -> dict:
     return data
 
 
+_JUDGE_WORDS = {
+    "robot_left": "to the robot's left",
+    "robot_right": "to the robot's right",
+    "left": "left in the image",
+    "right": "right in the image",
+    "forward": "forward (away from the robot)",
+    "backward": "backward (toward the robot)",
+}
+
+
 def _trajectory_truth(exp: Expectation) -> str:
-    parts = [f"{m.name}: {' and '.join(m.expected)}" for m in exp.motions if m.expected]
+    """The ground truth a judge grades the trajectory against, in words (as expectation_for derives it)."""
+
+    def words(ds: Sequence[str]) -> str:
+        return " and ".join(_JUDGE_WORDS.get(d, d) for d in ds)
+
+    parts = []
+    for m in exp.motions:
+        if m.expected:
+            text = f"{m.name}: {words(m.expected)}"
+            if m.returns:
+                text += f" (afterwards it returns {words(m.returns)})"
+            parts.append(text)
     if exp.target_row:
+        column = (exp.target_column or "").replace("_", " ")
+        side = f", {exp.image_side} in the image" if exp.image_side else ""
         parts.insert(
             0,
-            f"the object goes to the {exp.target_row} {exp.target_side} compartment of the target bin "
-            "(near/far from the robot, the robot's left/right)",
+            f"the object goes to the {exp.target_row} compartment of the target bin on the robot's "
+            f"{exp.target_side}{side} ({column} bin; near/far = from the robot)",
         )
     return "; ".join(parts) or "none"
 
@@ -681,20 +1070,45 @@ def parse_judge_answer(raw: str) -> JudgeVerdict:
     return JudgeVerdict(items, raw)
 
 
-def judge_captions(backend, captions: Sequence[tuple[str, Episode, str]]) -> list[JudgeVerdict]:
-    """Grade (text, episode, condition) triples with any vlmproprio Backend, in its batch size, in order."""
-    from vlmproprio.backends.base import BackendError
+def judge_captions(judge, captions: Sequence[tuple[str, Episode, str]]) -> list[JudgeVerdict]:
+    """Grade (text, episode, condition) triples, in order.
 
+    ``judge`` is a ``cache.CachedBackend`` (see :func:`judge_session`): its requests go through the same
+    content-addressed response cache and cassettes as captioning, so a judge's verdicts replay
+    bit-identically. A plain Backend is wrapped in a CachedBackend without a store (same keys, batches)."""
+    from vlmproprio.backends.base import BackendError
+    from vlmproprio.cache import CachedBackend
+
+    cached = judge if isinstance(judge, CachedBackend) else CachedBackend(judge, mode="live")
     requests = [judge_request(text, ep, cond) for text, ep, cond in captions]
-    out: list[JudgeVerdict] = []
-    step = max(1, int(getattr(backend, "max_batch_size", 1)))
-    for s in range(0, len(requests), step):
-        batch = requests[s : s + step]
-        answers = backend.generate(batch)
-        if len(answers) != len(batch):
-            raise BackendError(f"judge backend answered {len(answers)} of {len(batch)} requests")
-        out.extend(parse_judge_answer(a.text) for a in answers)
-    return out
+    answers = cached.answer(requests) if requests else []
+    if len(answers) != len(requests):
+        raise BackendError(f"judge answered {len(answers)} of {len(requests)} requests")
+    return [parse_judge_answer(a.text) for a in answers]
+
+
+@contextmanager
+def judge_session(name: str, mode: str, settings, cache_dir: Path | str | None = None) -> Iterator:
+    """A judge model as captioning runs one: registry backend, response cache (none in replay, where answers
+    come only from the cassette), and in record mode the answers used written to the model's cassette
+    (``settings.cassette_dir``/<slug>.jsonl, merged with what it holds) and registered in the fixture manifest."""
+    from vlmproprio.backends.registry import cassette_path, create_backend, model_slug
+    from vlmproprio.cache import CachedBackend, ResponseCache, default_cache_dir
+    from vlmproprio.episodes import register_fixture_file
+
+    backend = create_backend(name, mode, settings)
+    cache = None if mode == "replay" else ResponseCache(cache_dir or default_cache_dir())
+    try:
+        cached = CachedBackend(backend, mode=mode, cache=cache, model=model_slug(name))
+        yield cached
+        if mode == "record" and cached.used:
+            path = cassette_path(name, settings.cassette_dir)
+            cached.export_cassette(path)
+            register_fixture_file(path)
+    finally:
+        backend.close()
+        if cache is not None:
+            cache.close()
 
 
 def _kappa(pairs: list[tuple[bool, bool]]) -> float | None:

@@ -89,7 +89,15 @@ def secret_run(tmp_path_factory):
             assert again.returncode == 0, again.stderr[-3000:]
             server.inject("500", times=1000, retry_after=0.05)
             failed = vp(
-                "run", *common[:-2], "--cache-dir", root / "work" / "cache-fail", "--out", root / "work" / "run3"
+                # --mode live: the default (auto) would replay the cassette the record run just wrote
+                "run",
+                *common[:-2],
+                "--mode",
+                "live",
+                "--cache-dir",
+                root / "work" / "cache-fail",
+                "--out",
+                root / "work" / "run3",
             )
             assert failed.returncode != 0 and "Traceback" in failed.stderr  # --debug: the full traceback
             assert "rejected request with Authorization" in failed.stderr  # the echo came back ...

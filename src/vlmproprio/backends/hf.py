@@ -110,13 +110,17 @@ def how_to_provide(repo_id: str) -> str:
     return (
         f"download it on a machine with network (`hf download {repo_id}`, or "
         f"`huggingface-cli download {repo_id}`) and copy the Hugging Face cache (~/.cache/huggingface/hub, "
-        "or $HF_HUB_CACHE) here; or pass a local folder as `hf:/path/to/folder`; or, without the model, "
+        "or $HF_HUB_CACHE) here; or, where the Hub is reachable, add --allow-download; or pass a local folder as "
+        "`hf:/path/to/folder`; or, without the model, "
         "replay its recorded answers (--mode replay with a cassette in fixtures/responses/)"
     )
 
 
-def resolve_weights(weights: str | Path, model_id: str | None = None) -> ResolvedWeights:
-    """Find weights offline: a local folder, or an HF repo id in the local HF cache."""
+def resolve_weights(
+    weights: str | Path, model_id: str | None = None, *, allow_download: bool = False
+) -> ResolvedWeights:
+    """Find weights: a local folder, or an HF repo id in the local HF cache; with ``allow_download`` an id that
+    is not there is fetched from the Hugging Face Hub (when one is reachable)."""
     text = str(weights)
     path = Path(text).expanduser()
     if path.is_dir():
@@ -133,10 +137,26 @@ def resolve_weights(weights: str | Path, model_id: str | None = None) -> Resolve
     try:
         snap = Path(snapshot_download(text, local_files_only=True))
     except (LocalEntryNotFoundError, FileNotFoundError, OSError) as exc:
+        if allow_download:
+            return _download_weights(text, model_id)
         raise BackendError(
             f"weights for {text} are not in the local Hugging Face cache and downloads are off; " + how_to_provide(text)
         ) from exc
     return ResolvedWeights(snap, model_id or text, snap.name, "hf-cache")
+
+
+def _download_weights(repo_id: str, model_id: str | None) -> ResolvedWeights:
+    """The weights of ``repo_id`` fetched from the Hub into the local HF cache (--allow-download)."""
+    from huggingface_hub import snapshot_download
+
+    try:
+        snap = Path(snapshot_download(repo_id))
+    except Exception as exc:  # offline, unknown repo, gated: all say "could not download", with the hub's reason
+        raise BackendError(
+            f"--allow-download: could not download {repo_id} from the Hugging Face Hub "
+            f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); " + how_to_provide(repo_id)
+        ) from exc
+    return ResolvedWeights(snap, model_id or repo_id, snap.name, "hf-cache")
 
 
 def hf_weights_available(weights: str) -> tuple[bool, str]:
@@ -210,6 +230,7 @@ class HFBackend(Backend):
         compile_decode: bool | None = None,
         cache_bucket: int = DEFAULT_CACHE_BUCKET,
         max_batch_tokens: int | None = None,
+        allow_download: bool = False,
     ) -> None:
         """``static_cache``: a static KV cache per batch; ``compile_decode``: compile the decode step
         (None: on a GPU only, as transformers does; needs the static cache); ``cache_bucket``: static cache
@@ -231,7 +252,8 @@ class HFBackend(Backend):
             raise BackendError(f"cache_bucket must be >= 1, got {cache_bucket}")
         if max_batch_tokens is not None and max_batch_tokens < 1:
             raise BackendError(f"max_batch_tokens must be >= 1, got {max_batch_tokens}")
-        self.weights = resolve_weights(weights, model_id)
+        self.weights = resolve_weights(weights, model_id, allow_download=allow_download)
+        self.allow_download = allow_download
         self.device = device
         self.dtype = _resolve_dtype(dtype, device)
         self.attn_implementation = attn_implementation
@@ -262,7 +284,8 @@ class HFBackend(Backend):
     def load(self) -> None:
         if self.model is not None:
             return
-        os.environ.setdefault("HF_HUB_OFFLINE", "1")
+        if not self.allow_download:  # local files only, unless the user allowed the Hub
+            os.environ.setdefault("HF_HUB_OFFLINE", "1")
         import torch
         from transformers import AutoModelForImageTextToText
 

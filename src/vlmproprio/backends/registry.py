@@ -26,9 +26,11 @@ from vlmproprio.backends.base import Backend, BackendError
 from vlmproprio.cache import MODES
 from vlmproprio.errors import UsageError
 
+AUTO_MODE = "auto"  # replay when a cassette exists, else live (vlmproprio.options.DEFAULT_MODE)
 HF_PREFIX = "hf:"
 OPENAI_PREFIX = "openai:"
 TINY_PREFIX = "tiny:"
+STATE_RULES = "state-aware rules, NOT a VLM"  # the "weights" of `reference-state`, as `vlmproprio models` shows them
 DEFAULT_CASSETTE_DIR = Path("fixtures") / "responses"
 MAX_NAME_LEN = 200
 _SLUG_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}$")
@@ -42,7 +44,7 @@ class ModelNameError(UsageError):
 class ModelSpec:
     name: str
     backend: str  # "hf" | "openai" | "reference"
-    weights: str  # HF repo id or folder | OpenAI model name | "tiny:<family>" | "" (reference)
+    weights: str  # HF repo id or folder | OpenAI model name | "tiny:<family>" | "" or STATE_RULES (reference)
     description: str
     # default answer length; tiny random models write gibberish to the limit, so theirs is short
     max_new_tokens: int = 512
@@ -82,6 +84,12 @@ REGISTRY: dict[str, ModelSpec] = {
             "",
             "rule-based motion-primitive captions from the state numbers; NOT a VLM (a baseline)",
         ),
+        ModelSpec(
+            "reference-state",
+            "reference",
+            STATE_RULES,
+            "rule-based, task-aware captions from the state numbers; NOT a VLM (a positive control)",
+        ),
     )
 }
 
@@ -91,6 +99,27 @@ def format_registry() -> str:
     rows = [("name", "backend", "default weights")] + [(s.name, s.backend, s.weights or "-") for s in REGISTRY.values()]
     w0, w1 = (max(len(r[i]) for r in rows) for i in range(2))
     return "\n".join(f"{a:<{w0}}  {b:<{w1}}  {c}" for a, b, c in rows)
+
+
+def format_availability(settings: BackendSettings, names: list[str] | None = None) -> str:
+    """Per model: its cassette in ``settings.cassette_dir`` (replay) and whether it can run live here, with how to
+    get what is missing. One block per model; the reason line is the one the benchmark skips with."""
+    lines = []
+    for name in names or list(REGISTRY):
+        spec = parse_model_name(name)
+        cassette = cassette_path(name, settings.cassette_dir)
+        if spec.backend == "reference":
+            lines.append(f"{name}  [{spec.backend}]  replay: yes  live: yes  (rules, needs nothing)")
+            continue
+        has_cassette = cassette.is_file()
+        live = model_availability(name, "live", settings)
+        lines.append(
+            f"{name}  [{spec.backend}: {spec.weights}]  replay: {'yes' if has_cassette else 'no'}  "
+            f"live: {'yes' if live else 'no'}"
+        )
+        lines.append(f"    cassette: {cassette if has_cassette else 'none; ' + _record_hint(name)}")
+        lines.append(f"    live: {live.reason}")
+    return "\n".join(lines)
 
 
 def _check_name(name: object) -> str:
@@ -166,24 +195,43 @@ class BackendSettings:
     timeout_s: float = 120.0  # openai: per request
     max_retries: int = 4  # openai: retries on 429 / 5xx / timeouts / connection errors / malformed JSON
     cassette_dir: Path = DEFAULT_CASSETTE_DIR  # replay: where <slug>.jsonl cassettes live
-    home: Path | None = None  # where tiny models are built ($VLMPROPRIO_HOME, ~/.cache/vlmproprio)
+    home: Path | None = None  # cache root where tiny models are built in models/ (None: locations.cache_root())
+    allow_download: bool = False  # hf: fetch missing weights from the Hugging Face Hub (off: local files only)
     extra: dict = field(default_factory=dict)
 
 
 def _record_hint(name: str) -> str:
     return (
-        f"record one where the model runs (`--model {name} --mode record`, then "
-        f"`vlmproprio cassette export --model {name}`)"
+        f"record one where the model runs (`vlmproprio run --model {name} --mode record`; answers already in "
+        f"the response cache: `vlmproprio cassette export --model {name}`)"
     )
+
+
+def resolve_mode(name: str, mode: str, settings: BackendSettings | None = None) -> str:
+    """``auto`` made concrete for one model: ``replay`` when it has a cassette, else ``live`` (the reference
+    captioner has none: it runs, through the response cache). Other modes are returned as they are."""
+    if mode != AUTO_MODE:
+        return mode
+    settings = settings or BackendSettings()
+    return "replay" if cassette_path(name, settings.cassette_dir).is_file() else "live"
+
+
+def _check_mode(mode: str) -> None:
+    if mode not in (AUTO_MODE, *MODES):
+        raise UsageError(f"unknown mode {mode!r}; choose from {', '.join((AUTO_MODE, *MODES))}")
 
 
 def create_backend(name: str, mode: str = "live", settings: BackendSettings | None = None) -> Backend:
     """The backend that answers for ``name`` in ``mode`` (replay: its cassette; reference: always itself)."""
     settings = settings or BackendSettings()
-    if mode not in MODES:
-        raise UsageError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
+    _check_mode(mode)
+    mode = resolve_mode(name, mode, settings)
     spec = parse_model_name(name)
     if spec.backend == "reference":
+        if spec.weights == STATE_RULES:
+            from vlmproprio.backends.reference_state import ReferenceStateBackend
+
+            return ReferenceStateBackend()  # deterministic rules, no model: the same in every mode
         from vlmproprio.backends.reference import ReferenceBackend
 
         return ReferenceBackend()  # deterministic rules, no model: the same in every mode
@@ -212,6 +260,7 @@ def create_backend(name: str, mode: str = "live", settings: BackendSettings | No
             threads=settings.threads,
             static_cache=settings.static_cache,
             max_batch_tokens=settings.max_batch_tokens,
+            allow_download=settings.allow_download,
         )
     from vlmproprio.backends.openai import OpenAIBackend
 
@@ -244,9 +293,13 @@ def model_availability(name: str, mode: str = "live", settings: BackendSettings 
     Unknown or unsafe names raise ModelNameError: a typo is an error, not a skip.
     """
     settings = settings or BackendSettings()
-    if mode not in MODES:
-        raise UsageError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
+    _check_mode(mode)
     spec = parse_model_name(name)
+    if mode == AUTO_MODE and spec.backend != "reference":
+        live = model_availability(name, "live", settings)
+        if cassette_path(name, settings.cassette_dir).is_file() or live:
+            return model_availability(name, resolve_mode(name, mode, settings), settings)
+        return Availability(False, f"neither a cassette nor the model: {live.reason}; or " + _record_hint(name))
     if spec.backend == "reference":
         return Availability(True, "rule-based reference captioner (no model, always available)")
     if mode == "replay":
@@ -263,6 +316,8 @@ def model_availability(name: str, mode: str = "live", settings: BackendSettings 
         from vlmproprio.backends.hf import hf_weights_available
 
         ok, why = hf_weights_available(spec.weights)
+        if not ok and settings.allow_download and "/" in spec.weights and not spec.weights.startswith(("/", ".")):
+            return Availability(True, f"{spec.weights} will be downloaded from the Hugging Face Hub (--allow-download)")
         return Availability(ok, why)
     if _missing_modules("openai"):
         return Availability(False, "needs the openai SDK: pip install 'vlmproprio[openai]'")

@@ -14,7 +14,7 @@ regression gates deterministic, nothing more. A build with the same seed and
 the same torch/transformers/tokenizers versions gives sha256-identical files.
 
 ``ensure_tiny_model(family)`` builds a family once per machine into
-``$VLMPROPRIO_HOME/models`` (default ``~/.cache/vlmproprio/models``), safely
+``<cache root>/models`` ($VLMPROPRIO_CACHE, default ``~/.cache/vlmproprio``), safely
 when several processes ask at once (build in a temporary folder, then an
 atomic rename; the loser of the race uses the winner's build).
 """
@@ -35,7 +35,6 @@ from vlmproprio.episodes import sha256_file
 FAMILIES: tuple[str, ...] = ("qwen2-vl", "qwen2.5-vl", "llava")
 BUILD_VERSION = 1
 STAMP_FILE = "vlmproprio-tiny.json"
-HOME_ENV = "VLMPROPRIO_HOME"
 
 # Order fixes the token ids 0..6 (the real Qwen2 tokenizer has them at 151643..151656).
 SPECIAL_TOKENS = (
@@ -301,8 +300,10 @@ def build_tiny_model(family: str, out_dir: Path | str, *, seed: int = 0) -> Path
 
 
 def vlmproprio_home() -> Path:
-    env = os.environ.get(HOME_ENV)
-    return Path(env) if env else Path.home() / ".cache" / "vlmproprio"
+    """The cache root (vlmproprio.locations.cache_root): tiny models go to its models/ folder."""
+    from vlmproprio.locations import cache_root
+
+    return cache_root()
 
 
 def tiny_model_dir(family: str, home: Path | None = None) -> Path:

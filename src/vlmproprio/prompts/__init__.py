@@ -1,10 +1,17 @@
-"""The paper's prompts (Sec. III), rendered per process and condition into chat messages.
+"""The prompts of the paper's three processes (Sec. III), rendered per process and condition into chat messages.
 
-The texts live in ``prompts/paper/*.txt`` as printed in the paper, plus three
-things the paper leaves out and we had to write: the answer-format lines (so
-answers can be parsed), a sentence on units and axes in the Joint/Pose section,
-and the worked cube-stacking example (``example_cube_stacking.json``;
-switchable, on by default as in the paper).
+Two template sets, chosen with ``PromptOptions.version`` (CLI ``--prompt-version``):
+
+* ``suite`` (default, ``prompts/suite/``): the paper's structure and wording, with every sentence about the
+  input saying only what the condition sends (``suite/conditions.json``): under ``none`` no word about joint
+  angles or hand positions, under ``state_only`` no word about images, under ``primitives`` motion words;
+  the gripper value explained as a finger distance in metres; "one image" for a short last group.
+* ``paper-verbatim`` (``prompts/paper/``): the texts as printed in the paper, whatever the condition sends
+  (as the paper did), to compare against. docs/paper-fidelity.md lists every difference.
+
+Both add what the paper leaves out and we had to write: the answer-format lines (so answers can be
+parsed) and the worked cube-stacking example (``paper/example_cube_stacking.json``; switchable, on by
+default as in the paper). The ``primitives`` control has no paper text: its Motion section is ours.
 
 How a condition changes the prompt:
 
@@ -13,9 +20,9 @@ How a condition changes the prompt:
 * ``primitives``: a Motion section instead of Joint/Pose and a guideline 4 that refers to the motion words;
 * ``state_only``: no images; the state lines are the only view of the episode.
 
-``prompt_version()`` names the template set; it enters the cache key, and the
-rendered prompts are snapshot-tested, so editing a template without bumping
-``paper/VERSION`` fails a test.
+``prompt_version()`` names the template set and its version; it enters the cache key, and the rendered
+prompts are tested (tests/test_prompts.py), so a template edit that changes what is sent needs a bump of
+the set's ``VERSION``.
 """
 
 from __future__ import annotations
@@ -30,15 +37,22 @@ import numpy as np
 
 from vlmproprio.chat import ImagePart, Message, Part, TextPart
 from vlmproprio.conditions import Condition, motion_words
+from vlmproprio.errors import UsageError
 from vlmproprio.prompts.state import format_state_line
 
-TEMPLATE_SET = "paper"
+PAPER_SET = "paper"  # the paper's texts verbatim, plus the shared answer lines and example
+SUITE_SET = "suite"  # condition-aware rewrites; files it lacks come from the paper set
+PROMPT_VERSIONS = ("suite", "paper-verbatim")
 NUMBER_WORDS = ("zero", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten")
 
 
 @cache
-def template(name: str) -> str:
-    return resources.files(__package__).joinpath(TEMPLATE_SET, name).read_text(encoding="utf-8").strip()
+def template(name: str, template_set: str = PAPER_SET) -> str:
+    """A template of the set; the suite set falls back to the paper's file where it has none of its own."""
+    folder = resources.files(__package__).joinpath(template_set)
+    if template_set != PAPER_SET and not folder.joinpath(name).is_file():
+        folder = resources.files(__package__).joinpath(PAPER_SET)
+    return folder.joinpath(name).read_text(encoding="utf-8").strip()
 
 
 @cache
@@ -46,15 +60,45 @@ def _example() -> dict:
     return json.loads(template("example_cube_stacking.json"))
 
 
+@cache
+def _condition_words() -> dict:
+    return json.loads(template("conditions.json", SUITE_SET))
+
+
 @dataclass(frozen=True)
 class PromptOptions:
     """Switches that change the prompt text (and therefore the cache key)."""
 
     example: bool = True
+    version: str = "suite"  # suite | paper-verbatim
+
+    def __post_init__(self) -> None:
+        if self.version not in PROMPT_VERSIONS:
+            raise UsageError(f"prompt version {self.version!r} is not one of {', '.join(PROMPT_VERSIONS)}")
+
+    @property
+    def template_set(self) -> str:
+        return SUITE_SET if self.version == "suite" else PAPER_SET
 
 
 def prompt_version(options: PromptOptions = PromptOptions()) -> str:
-    return f"{TEMPLATE_SET}-{template('VERSION')}{'' if options.example else '-noexample'}"
+    name = SUITE_SET if options.version == "suite" else "paper-verbatim"
+    return f"{name}-{template('VERSION', options.template_set)}{'' if options.example else '-noexample'}"
+
+
+def condition_kind(condition: Condition) -> str:
+    """What a condition sends, as one of the kinds in suite/conditions.json (controls read like what they send)."""
+    if condition.words:
+        return "primitives"
+    if not condition.images:
+        return "state_only"
+    if condition.joints and condition.ee:
+        return "both"
+    return "joint" if condition.joints else "ee" if condition.ee else "none"
+
+
+def _words_for(condition: Condition) -> dict:
+    return _condition_words()["kinds"][condition_kind(condition)]
 
 
 @dataclass(frozen=True)
@@ -81,27 +125,36 @@ def state_text(number: int, condition: Condition, joints=None, ee=None, words: s
 # ---------------------------------------------------------------------------------------------- sections
 
 
-def _state_section(condition: Condition) -> str | None:
+def _task(condition: Condition, options: PromptOptions) -> str:
+    if options.version != "suite":
+        return template("task.txt")
+    return template("task.txt", SUITE_SET).format(input=_words_for(condition)["input"])
+
+
+def _state_section(condition: Condition, options: PromptOptions) -> str | None:
+    ts = options.template_set
     if condition.words:
-        return template("motion_words.txt")
+        return template("motion_words.txt", ts)
     if not condition.numeric_state:
         return None
-    parts = [template("joint_pose_intro.txt")]
+    parts = [template("joint_pose_intro.txt", ts)]
     if condition.joints:
-        parts.append(template("joint_pose_joint.txt"))
+        parts.append(template("joint_pose_joint.txt", ts))
     if condition.ee:
-        parts.append(template("joint_pose_ee.txt"))
-    parts.append(template("joint_pose_units.txt"))
+        parts.append(template("joint_pose_ee.txt", ts))
+    if options.version == "suite":
+        gripper = _condition_words()["gripper"] if condition.joints else ""
+        parts.append(template("joint_pose_units.txt", ts).format(gripper=gripper))
     return "\n".join(parts)
 
 
-def _guidelines(condition: Condition) -> str:
+def _guidelines(condition: Condition, options: PromptOptions) -> str:
     text = template("guidelines.txt")
-    if condition.words:
-        text += "\n" + template("guideline_words.txt")
-    elif condition.numeric_state:
-        text += "\n" + template("guideline_state.txt")
-    return text
+    if not condition.has_state:
+        return text
+    if options.version == "suite":
+        return text + "\n" + template("guideline_state.txt", SUITE_SET).format(state=_words_for(condition)["state"])
+    return text + "\n" + template("guideline_words.txt" if condition.words else "guideline_state.txt")
 
 
 def _example_text(condition: Condition) -> str:
@@ -123,7 +176,7 @@ def _example_text(condition: Condition) -> str:
 
 
 def preamble(condition: Condition, options: PromptOptions) -> str:
-    sections = [template("task.txt"), _state_section(condition), _guidelines(condition)]
+    sections = [_task(condition, options), _state_section(condition, options), _guidelines(condition, options)]
     if options.example:
         sections.append(_example_text(condition))
     return "\n\n".join(s for s in sections if s)
@@ -155,11 +208,17 @@ def _user(parts: Sequence[Part]) -> tuple[Message, ...]:
 def process1(frames: Sequence[FrameView], condition: Condition, options: PromptOptions = PromptOptions()):
     n = len(frames)
     count_words = NUMBER_WORDS[n] if n < len(NUMBER_WORDS) else str(n)
+    if options.version == "suite":
+        w = _words_for(condition)
+        unit = w["unit"][0] if n == 1 else w["unit"][1]
+        head = template("process1.txt", SUITE_SET).format(basis=w["basis"], count_words=count_words, unit=unit)
+    else:
+        head = template("process1.txt").format(count_words=count_words)
     parts: list[Part] = [
         TextPart(preamble(condition, options)),
-        TextPart(template("process1.txt").format(count_words=count_words)),
+        TextPart(head),
         *_frames_parts(frames),
-        TextPart(template("answer_process1.txt").format(count=n)),
+        TextPart(template("answer_process1.txt", options.template_set).format(count=n)),
     ]
     return _user(parts)
 
@@ -190,7 +249,11 @@ def process3(
     summaries = "\n".join(f"Scene {i + 1}: {c}" for i, c in enumerate(scene_captions))
     parts: list[Part] = [
         TextPart(preamble(condition, options)),
-        TextPart(template("process3.txt")),
+        TextPart(
+            template("process3.txt", SUITE_SET).format(incorporating=_words_for(condition)["incorporating"])
+            if options.version == "suite"
+            else template("process3.txt")
+        ),
         TextPart("Summaries of the task:\n" + summaries),
         *_frames_parts(frames, label="Image of frame"),
         TextPart(template("answer_process3.txt")),

@@ -631,6 +631,8 @@ def import_demo(
         load_demo_model(ie.env, demo, file, camera)
         rep = replay(ie.env, demo, task, camera, replay_mode, where)
         target, success, outcome = _outcome(ie.env, task)
+        # the rubric reads image words (left/right, top/bottom) in this camera's terms
+        axes = scenes.camera_axes(ie.env, camera)
     finally:
         if own:
             ie.close()
@@ -657,6 +659,7 @@ def import_demo(
         **rep.notes,
         **({"controller": controller_note} if controller_note else {}),
         "ground_truth": "phases from simulator signals (vlmproprio.record.demos)",
+        "camera_axes": axes,
         **outcome,
     }
     meta, states = build_episode(

@@ -199,6 +199,19 @@ def hide_ghosts(env) -> int:
     return hidden
 
 
+def camera_axes(env, camera: str) -> dict[str, list[float]]:
+    """Image right, image up and viewing direction of a camera as unit vectors in the world (= robot) frame.
+
+    Written into imported episodes (episode.json extra.camera_axes) so the rubric reads image words such as
+    left/right in that camera's terms; the shipped cameras' axes are in vlmproprio/lexicons/cameras.json."""
+    m, d = env.sim.model, env.sim.data
+    mat = np.asarray(d.cam_xmat[m.camera_name2id(camera)]).reshape(3, 3)  # columns: camera x, y, z
+    return {
+        k: [round(float(v), 3) for v in vec]
+        for k, vec in (("right", mat[:, 0]), ("up", mat[:, 1]), ("view", -mat[:, 2]))
+    }
+
+
 def render(env, camera: str, size: int = IMAGE_SIZE) -> np.ndarray:
     # MuJoCo's offscreen buffer is bottom-up; flip so row 0 is the top of the image.
     return np.ascontiguousarray(env.sim.render(width=size, height=size, camera_name=camera)[::-1])

@@ -211,7 +211,7 @@ def write_report(
 ) -> Path:
     """Write the report of a scored run into ``out`` (default RUN_DIR/report/); returns the HTML page's path.
 
-    The run must be scored (RUN_DIR/scores/, `vlmproprio score`). Frames come from the fixture folder
+    The run must be scored (RUN_DIR/scores/, `vlmproprio score RUN_DIR`). Frames come from the fixture folder
     (``fixtures``, default the one named in run.json); without it the page says so and shows no frames."""
     require_report_packages()
     s = load_run_scores(run_dir)

@@ -1,6 +1,6 @@
 """What a report reads: the score tables of a run (RUN_DIR/scores/), its run.json and transcripts, its episodes.
 
-Everything is read from files written by `vlmproprio run` and `vlmproprio score`; nothing is recomputed
+Everything is read from files written by the run and score commands; nothing is recomputed
 here, so a report always shows the numbers the scores hold.
 """
 
@@ -39,6 +39,7 @@ class RunScores:
     models: list[str] = field(default_factory=list)
     conditions: list[str] = field(default_factory=list)
     episodes: list[str] = field(default_factory=list)
+    judge: dict | None = None  # scores/judge.json, when the run was scored with --judge
 
     @property
     def threshold(self) -> float:
@@ -59,7 +60,7 @@ class RunScores:
 
     @property
     def prompt_version(self) -> str | None:
-        """The models' prompt versions ("paper-1"; several joined by ", "), None if run.json names none."""
+        """The models' prompt versions ("suite-2"; several joined by ", "), None if run.json names none."""
         models = [m for m in self.manifest.get("models", []) if isinstance(m, dict)]
         found = {m.get("pipeline", {}).get("prompt_version") for m in models}
         found.add(self.manifest.get("pipeline", {}).get("prompt_version"))  # run.json before per-model settings
@@ -89,9 +90,13 @@ def _read_json(path: Path, kind: type):
     except FileNotFoundError:
         raise ReportError(f"{path}: missing; score the run first (`vlmproprio score {path.parent.parent}`)") from None
     except (OSError, ValueError) as exc:
-        raise ReportError(f"{path}: cannot read ({exc}); re-score the run (`vlmproprio score ...`)") from exc
+        raise ReportError(
+            f"{path}: cannot read ({exc}); re-score the run (`vlmproprio score {path.parent.parent}`)"
+        ) from exc
     if not isinstance(data, kind):
-        raise ReportError(f"{path}: expected a JSON {kind.__name__}; re-score the run (`vlmproprio score ...`)")
+        raise ReportError(
+            f"{path}: expected a JSON {kind.__name__}; re-score the run (`vlmproprio score {path.parent.parent}`)"
+        )
     return data
 
 
@@ -130,4 +135,5 @@ def load_run_scores(run_dir: str | Path) -> RunScores:
         models=models,
         conditions=conditions or list(dict.fromkeys(r["condition"] for r in t["rows"])),
         episodes=episodes or list(dict.fromkeys(r["episode_id"] for r in t["rows"])),
+        judge=_read_json(d / "judge.json", dict) if (d / "judge.json").is_file() else None,
     )

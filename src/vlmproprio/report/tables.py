@@ -267,16 +267,46 @@ def paired_table(
     )
 
 
+def judge_table(s: RunScores) -> Table | None:
+    """Rubric against the judge model, per item and field: agreement and Cohen's kappa (when a judge ran)."""
+    if not s.judge or not isinstance(s.judge.get("agreement"), dict):
+        return None
+    agr = s.judge["agreement"]
+    model = s.judge.get("backend", {}).get("model_id", "?")
+    rows = []
+    for name, v in agr.get("items", {}).items():
+        a, k = v.get("agreement"), v.get("kappa")
+        rows.append(
+            [
+                name.replace("_", " "),
+                str(v.get("n", 0)),
+                "—" if a is None else f"{a:.2f}",
+                "—" if k is None else f"{k:.2f}",
+            ]
+        )
+    return Table(
+        title=f"Rubric against the judge model ({model})",
+        headers=["item", "captions", "agreement", "Cohen's κ"],
+        rows=rows,
+        align=["l", "r", "r", "r"],
+        note=f"{agr.get('n', 0)} final captions graded, {agr.get('unparsed', 0)} answers unusable (left out). "
+        "The rubric stays the reference; κ corrects the agreement for chance (— where it is undefined).",
+        anchor="judge",
+    )
+
+
 def report_tables(s: RunScores) -> list[Table]:
     # the metrics scoring paired (evaluation.PAIRED_METRICS, recorded in the scores), not a copy to keep in step
     caption_metrics = [m for m in s.paired_metrics if m.startswith("final_")]
     segmentation_metrics = [m for m in s.paired_metrics if m.startswith("seg_")]
-    return [
+    tables = [
         caption_table(s),
         segmentation_table(s),
         paired_table(s, caption_metrics, "Paired differences: final captions", "paired-captions"),
         paired_table(s, segmentation_metrics, "Paired differences: segmentation", "paired-segmentation"),
     ]
+    judged = judge_table(s)
+    return [*tables, judged] if judged is not None else tables
 
 
 HEADLINE_METRICS = ("final_trajectory_correct", "final_all_correct", "final_words", "seg_f1_tol1")

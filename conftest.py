@@ -1,0 +1,22 @@
+"""The benchmark's pytest options, short spellings: ``pytest benchmark/ --model NAME --mode replay``.
+
+At the repository root so that it loads for every pytest run in the repository (``pytest --model reference``
+runs the whole suite with that model; ``pytest /path/to/repo/benchmark ...`` works from any folder).
+
+The plugin itself (vlmproprio.pytest_plugin) is registered here rather than through an entry point, so installing
+vlmproprio changes no other project's pytest; its long names (``--vlmproprio-model``) stay usable with
+``pytest -p vlmproprio.pytest_plugin`` anywhere.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from vlmproprio import pytest_plugin
+
+
+def pytest_addoption(parser: pytest.Parser, pluginmanager: pytest.PytestPluginManager) -> None:
+    # registered once: an environment with an older install (pytest11 entry point) has it already
+    if not pluginmanager.is_registered(pytest_plugin):
+        pluginmanager.register(pytest_plugin, "vlmproprio")
+    pytest_plugin.add_options(parser, short=True)

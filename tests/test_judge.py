@@ -1,0 +1,93 @@
+"""`vlmproprio score --judge MODEL`: a judge model graded through the response cache and cassettes.
+
+A judge's requests are content-addressed like captioning's, so recording its answers and replaying them
+from the cassette gives the same verdicts bit for bit; the report shows rubric vs judge agreement (Cohen's
+kappa). Tested with the tiny Qwen2-VL (whose answers are gibberish: every verdict unusable, and identical)
+and with the loopback OpenAI-compatible server answering JSON verdicts (kappa defined).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import pytest
+
+from scoring_helpers import prefill_embeddings, write_synthetic_run
+from vlmproprio.cache import read_cassette
+from vlmproprio.cli import main
+from vlmproprio.embeddings import encoder_spec
+from vlmproprio.report.data import load_run_scores
+from vlmproprio.report.tables import report_tables, to_markdown
+from vlmproprio.testing.openai_server import FakeOpenAIServer
+
+
+@pytest.fixture
+def small_run(tmp_path):
+    run, fx = tmp_path / "run", tmp_path / "fixtures"
+    write_synthetic_run(run, fx, n_door=1, n_per_bin=1, n_frames=8, conditions=("none", "both"))
+    emb = tmp_path / "emb"
+    prefill_embeddings(run, encoder_spec().key, cache_dir=emb)  # no encoder needed to score
+    return run, fx, emb
+
+
+def judged(run: Path) -> dict:
+    return json.loads((run / "scores" / "judge.json").read_text())
+
+
+def score(run, emb, *extra) -> int:
+    return main(["score", str(run), "--embedding-cache", str(emb), *extra])
+
+
+@pytest.mark.slow
+def test_tiny_judge_live_then_replay_gives_identical_verdicts(small_run, tmp_path, vlmproprio_home, capsys):
+    run, fx, emb = small_run
+    cache = ["--cache-dir", str(tmp_path / "responses-cache")]
+    assert score(run, emb, "--judge", "tiny-qwen2-vl", "--judge-mode", "record", *cache) == 0
+    recorded = judged(run)
+    assert "rubric vs judge kappa" in capsys.readouterr().out
+    cassette = read_cassette(fx / "responses" / "tiny-qwen2-vl.jsonl")  # the model's cassette, as captioning's
+    assert cassette.entries and all(e.tag["stage"] == "judge" for e in cassette.entries.values())
+    assert len(recorded["verdicts"]) == 10  # 5 episodes x 2 conditions
+    # replay: answers only from the cassette (no cache, no model), the same verdicts bit for bit
+    assert score(run, emb, "--judge", "tiny-qwen2-vl", "--judge-mode", "replay") == 0
+    assert judged(run) == recorded
+    # live again: every answer from the response cache, still the same
+    assert score(run, emb, "--judge", "tiny-qwen2-vl", "--judge-mode", "live", *cache) == 0
+    assert judged(run) == recorded
+
+
+def _verdict(body: dict) -> str:
+    """A rule judge behind the loopback server: trajectory correct only when the caption names a compartment
+    side or 'toward'; everything mentioned; for one episode's captions an unusable answer."""
+    user = body["messages"][-1]["content"]
+    text = user if isinstance(user, str) else " ".join(p.get("text", "") for p in user)
+    caption = text.split('"""')[1]
+    if "into the far right compartment" in text:  # the instruction of bin1_00
+        return "no idea"
+    ok = bool(re.search(r"toward|left|right", caption))
+    items = {k: {"mentioned": True, "correct": ok or k != "trajectory"} for k in ("object", "action", "trajectory")}
+    return "Verdict: " + json.dumps(items)
+
+
+def test_openai_judge_replays_and_the_report_shows_kappa(small_run, tmp_path, monkeypatch):
+    run, _, emb = small_run
+    monkeypatch.setenv("OPENAI_API_KEY", "test-key")
+    cache = ["--cache-dir", str(tmp_path / "responses-cache")]
+    with FakeOpenAIServer(responder=_verdict) as server:
+        args = ["--judge", "openai:rule-judge", "--base-url", server.base_url, "--judge-mode", "record", *cache]
+        assert score(run, emb, *args) == 0
+        asked = len(server.requests)
+    recorded = judged(run)
+    assert 0 < asked <= 10 and recorded["agreement"]["n"] == 10
+    # the server is gone: replay answers from the cassette alone
+    assert score(run, emb, "--judge", "openai:rule-judge", "--judge-mode", "replay") == 0
+    assert judged(run) == recorded
+    tables = report_tables(load_run_scores(run))
+    table = next(t for t in tables if t.anchor == "judge")
+    md = to_markdown(table)
+    assert "Cohen's κ" in md and "trajectory correct" in md
+    kappa = recorded["agreement"]["items"]["object_mentioned"]["kappa"]
+    assert kappa is None or isinstance(kappa, float)
+    assert recorded["agreement"]["unparsed"] == 2  # bin1_00 under both conditions

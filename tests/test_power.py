@@ -1,0 +1,97 @@
+"""The power analysis simulates exactly the suite's paired test, and agrees with closed forms."""
+
+from __future__ import annotations
+
+import itertools
+import json
+
+import numpy as np
+import pytest
+
+from vlmproprio.cli import main
+from vlmproprio.power import (
+    PowerSettings,
+    analyse,
+    exact_rate_power,
+    mc_error,
+    rate_mde,
+    sign_flip_p_many,
+    simulate_rate_power,
+    simulate_shift_power,
+)
+from vlmproprio.stats import sign_flip_p
+
+
+@pytest.mark.parametrize("n", [1, 3, 10, 12, 17, 22])
+def test_vectorised_test_is_the_suites_test(n):
+    rng = np.random.default_rng(n)
+    d = np.round(rng.normal(0.2, 1.0, size=(12, n)), 3)
+    d[:4] = rng.integers(-1, 2, size=(4, n))  # rates: many ties, the hard case for a re-implementation
+    d[4] = 0.0
+    expected = [sign_flip_p(row)[0] for row in d]
+    assert sign_flip_p_many(d).tolist() == expected
+
+
+def test_closed_form_equals_the_suites_test_over_every_outcome():
+    """Brute force for 5 episodes: every outcome in {-1, 0, 1}^5, its probability, stats.sign_flip_p."""
+    n, p, q, level = 5, 0.9, 0.2, 0.07
+    up, down, same = p * (1 - q), q * (1 - p), 1 - p * (1 - q) - q * (1 - p)
+    prob = {1: up, -1: down, 0: same}
+    brute = 0.0
+    for d in itertools.product((-1, 0, 1), repeat=n):
+        arr = np.array(d, dtype=float)
+        if arr.mean() > 0 and sign_flip_p(arr)[0] < level:
+            brute += float(np.prod([prob[v] for v in d]))
+    assert exact_rate_power(n, p, q, level) == pytest.approx(brute, abs=1e-12)
+
+
+@pytest.mark.parametrize(("n", "p", "q"), [(10, 0.8, 0.0), (12, 0.7, 0.1), (12, 0.95, 0.3), (22, 0.45, 0.05)])
+def test_simulation_matches_the_closed_form_within_monte_carlo_error(n, p, q):
+    settings = PowerSettings(n_sims=2000)
+    exact = exact_rate_power(n, p, q, settings.level)
+    sim = simulate_rate_power(n, p, q, settings)
+    # n = 22 uses the suite's 20 000 random sign patterns, not all of them: allow their own small error
+    slack = 4 * mc_error(exact, settings.n_sims) + (0.01 if n > settings.max_exact else 0.0)
+    assert abs(sim - exact) <= slack, (sim, exact)
+
+
+def test_no_effect_is_detected_at_most_at_the_corrected_level():
+    settings = PowerSettings(n_sims=4000)
+    for n in (10, 12):
+        assert simulate_shift_power(n, 0.0, settings) <= settings.level / 2 + 4 * mc_error(settings.level, 4000)
+        assert exact_rate_power(n, 0.3, 0.3, settings.level) <= settings.level / 2
+
+
+def test_seeded_and_independent_of_what_else_is_asked():
+    s = PowerSettings(n_sims=200)
+    a = simulate_shift_power(12, 0.8, s)
+    simulate_rate_power(12, 0.5, 0.0, s)
+    assert simulate_shift_power(12, 0.8, s) == a
+    assert simulate_shift_power(12, 0.8, PowerSettings(n_sims=200, seed=1)) != a or a in (0.0, 1.0)
+
+
+def test_minimal_detectable_rate_is_where_the_power_crosses_80_percent():
+    level = PowerSettings().level
+    p = rate_mde(10, 0.0, level)
+    assert p is not None and exact_rate_power(10, p, 0.0, level) >= 0.8 > exact_rate_power(10, p - 0.01, 0.0, level)
+    assert rate_mde(10, 0.5, level) is None  # 10 episodes cannot show 0.5 -> anything at 80 %
+
+
+def test_cli_writes_curves_and_states_the_minimal_effects(tmp_path, capsys):
+    out = tmp_path / "power"
+    assert main(["power", "--sims", "20", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "Minimal detectable effects at 80 % power" in text and "| door | 10 |" in text
+    data = json.loads((out / "power.json").read_text())
+    assert data["groups"] == {"door": 10, "pick_place": 12, "all": 22}
+    assert data["words"]["difference"] == pytest.approx(10.25)
+    png = (out / "power_curves.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+
+
+def test_cli_refuses_bad_settings_in_one_line(tmp_path, capsys):
+    assert main(["power", "--alpha", "1.5", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "alpha" in err[0]
+    with pytest.raises(Exception, match="probabilities"):
+        analyse(PowerSettings(n_sims=10), correctness=(1.2, 0.0))

@@ -1,0 +1,110 @@
+"""The benchmark's pytest plugin is inert unless asked for: another project's pytest is unchanged."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+import tomllib
+
+pytest_plugins = ("pytester",)
+
+REPO = Path(__file__).resolve().parents[1]
+# blocks the entry point an older editable install of vlmproprio may still declare (it would load the plugin a
+# second time); a no-op where there is none
+NO_STALE = ("-p", "no:vlmproprio")
+
+OTHER_CONFTEST = """
+def pytest_addoption(parser):
+    parser.addoption("--model", default="theirs")
+    parser.addoption("--mode", default="fast")
+    parser.addoption("--episodes", default="")
+    parser.addoption("--conditions", default="")
+    parser.addoption("--run-dir", default="")
+"""
+OTHER_TEST = """
+def test_their_options(request):
+    assert request.config.getoption("--model") == "mine"
+    assert request.config.getoption("--mode") == "fast"
+"""
+
+
+def test_another_project_defining_model_runs_green(pytester: pytest.Pytester) -> None:
+    """A project whose conftest defines --model, --mode ... in an environment where vlmproprio is installed."""
+    pytester.makeconftest(OTHER_CONFTEST)
+    pytester.makepyfile(test_theirs=OTHER_TEST)
+    result = pytester.runpytest_subprocess("--model", "mine", "-p", "no:cacheprovider")
+    result.assert_outcomes(passed=1)
+
+
+def test_the_plugin_loaded_by_hand_uses_namespaced_names_only(pytester: pytest.Pytester) -> None:
+    pytester.makeconftest(OTHER_CONFTEST)
+    pytester.makepyfile(test_theirs=OTHER_TEST)
+    result = pytester.runpytest_subprocess(*NO_STALE, "-p", "vlmproprio.pytest_plugin", "--model", "mine", "--help")
+    assert result.ret == 0
+    assert "--vlmproprio-model" in result.stdout.str()
+    result = pytester.runpytest_subprocess(
+        *NO_STALE, "-p", "vlmproprio.pytest_plugin", "--model", "mine", "-p", "no:cacheprovider"
+    )
+    result.assert_outcomes(passed=1)
+
+
+def test_the_package_declares_no_pytest_entry_point() -> None:
+    """An entry point would load the plugin into every pytest session of the environment."""
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    assert "pytest11" not in project.get("entry-points", {})
+
+
+def test_the_benchmark_keeps_its_short_options() -> None:
+    """`pytest benchmark/ --model NAME ...` as documented: the short names come from the root conftest.py."""
+    import subprocess
+
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", str(REPO / "benchmark"), "--help", "-p", "no:cacheprovider"],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr
+    for option in (
+        "--model=NAME",
+        "--mode=",
+        "--episodes=IDS",
+        "--conditions=CONDS",
+        "--run-dir=DIR",
+        "--fixtures-dir",
+    ):
+        assert option in proc.stdout, option
+
+
+def test_plugin_state_lives_in_the_config_stash(pytester: pytest.Pytester) -> None:
+    pytester.makepyfile(
+        test_stash="""
+from vlmproprio import pytest_plugin
+
+def test_stash(request):
+    session = request.config.stash[pytest_plugin.BENCH_KEY]
+    assert session.models == ("reference",)
+    assert session.episodes == ("door_00", "bin0_00")
+    assert not hasattr(request.config, "_vlmproprio_bench")
+"""
+    )
+    result = pytester.runpytest_subprocess(
+        *NO_STALE,
+        "-p",
+        "vlmproprio.pytest_plugin",
+        "--vlmproprio-model",
+        "reference",
+        "--vlmproprio-episodes",
+        "door_00",
+        "--vlmproprio-episodes",
+        "bin0_00",
+        "--vlmproprio-fixtures-dir",
+        str(REPO / "fixtures"),
+        "-p",
+        "no:cacheprovider",
+    )
+    result.assert_outcomes(passed=1)
