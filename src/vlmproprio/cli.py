@@ -168,12 +168,13 @@ def cmd_cassette_embed(args: argparse.Namespace) -> int:
     from vlmproprio.sidecars import benchmark_caption_texts, build_sidecar, run_caption_texts
 
     spec = encoder_spec(args.encoder, batch_size=args.encoder_batch_size)
+    fixtures = fixtures_of(args)
     if args.run_dir:
-        texts = set().union(*(run_caption_texts(r, args.fixtures, model_slug(args.model)) for r in args.run_dir))
+        texts = set().union(*(run_caption_texts(r, fixtures, model_slug(args.model)) for r in args.run_dir))
     else:
-        texts = benchmark_caption_texts(args.model, args.fixtures, progress=not args.no_progress)
+        texts = benchmark_caption_texts(args.model, fixtures, progress=not args.no_progress)
     build = build_sidecar(
-        args.model, args.fixtures, spec, texts, merge=args.merge, embedding_cache=args.embedding_cache
+        args.model, fixtures, spec, texts, merge=args.merge, embedding_cache=cache_root_of(args) / "embeddings"
     )
     _print_sidecar(args.model, build)
     return 0
@@ -696,8 +697,8 @@ def build_parser() -> argparse.ArgumentParser:
     pm.add_argument("--merge", action="store_true", help="add to the encoder's stored vectors instead of replacing")
     pm.add_argument("--encoder", default=None, metavar="PATH", help="local sentence-transformers folder")
     pm.add_argument("--encoder-batch-size", type=int, default=8, help="fixed encoder batch size (default 8)")
-    pm.add_argument("--embedding-cache", type=Path, default=None, help="embedding cache folder (as for score)")
-    pm.add_argument("--no-progress", action="store_true", help="no progress bar")
+    _add_cache_dir(pm)
+    _add_no_progress(pm)
     pm.set_defaults(func=cmd_cassette_embed)
 
     p = sub.add_parser(
