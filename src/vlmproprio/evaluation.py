@@ -4,12 +4,23 @@ Reads ``RUN_DIR/run.json`` (for the fixture root) and every transcript under
 ``RUN_DIR/transcripts/``, loads the ground truth of each episode, and writes:
 
 * ``rows.json`` / ``rows.csv``: one row per (model, episode, condition) with every metric;
-* ``aggregate.json`` / ``aggregate.csv``: means per (model, task, condition), task "all" included,
-  with the best threshold of the sweep (highest mean boundary F1 at +-1 frame; ties: the lowest threshold);
+* ``aggregate.json`` / ``aggregate.csv``: means per (model, task, condition), task "all" included;
 * ``sweep.json`` / ``sweep.csv``: per (model, episode, condition, threshold 0.00..1.00): number of
-  segmentation points, boundary P/R/F1 at tolerance 0/1/2 frames, edit score;
+  segmentation points, boundary P/R/F1 at tolerance 0/1/2 frames, MS-TCN edit score, F1@{10,25,50},
+  frame accuracy and the unmerged edit score;
   ``sweep_aggregate.json`` / ``.csv``: their means per (model, task, condition, threshold);
-* ``paired.json`` / ``paired.csv``: condition differences paired by episode (bootstrap CI, sign-flip p);
+* ``paired.json`` / ``paired.csv``: condition differences paired by episode (bootstrap CI, sign-flip p), each
+  marked primary (a pre-registered hypothesis, Holm-corrected) or exploratory (Benjamini-Hochberg q);
+* ``verdicts.json``: per model and primary hypothesis supported / not supported / inconclusive, and the
+  sanity warnings (vlmproprio.verdicts);
+
+Segmentation is scored at the paper's fixed threshold (columns ``seg_*``) and at a threshold chosen out of
+sample (``seg_loo_*``): for each episode, the threshold with the best mean boundary F1 (+-1 frame) on the
+*other* episodes of its task, same model and condition (ties: the lowest). Every segmentation metric has
+chance baselines for the same number of points (``*_chance``: random positions, exact or 10 000 seeded
+draws; ``*_even``: evenly spaced) and its lift over random chance (``*_lift``); ``seg_groups_*`` scores
+boundaries at the edges of the pipeline's frame groups. The in-sample best threshold is not a score: it
+exists only in the sweep tables (and the report's sweep plot, marked optimistic).
 * ``audit.json``: per caption, every matched span with its verdict, and what was expected;
 * ``traces.json``: every similarity trace with its predicted and true boundaries;
 * ``meta.json``: encoder name, revision and key, lexicon versions and hashes, settings;
@@ -37,19 +48,28 @@ from vlmproprio.episodes import Episode, atomic_write_text, load_episodes
 from vlmproprio.errors import VlmproprioError
 from vlmproprio.scoring import ITEMS, CaptionScore, expectation_for, load_lexicon, score_text
 from vlmproprio.segmentation import (
+    CHANCE_DRAWS,
+    CHANCE_METRICS,
+    CHANCE_SEED,
     DEFAULT_THRESHOLD,
+    IOU_THRESHOLDS,
     THRESHOLDS,
     TOLERANCES,
+    Truth,
     boundaries_at,
     caption_present,
+    chance_random,
     cosine_trace,
-    evaluate_segmentation,
+    evenly_spaced,
+    group_edges,
+    score_points,
     sweep,
+    truth_of,
 )
 from vlmproprio.stats import DEFAULT_N_BOOT, DEFAULT_N_PERM, DEFAULT_SEED, paired_difference
 from vlmproprio.transcripts import Transcript, read_transcripts
 
-SCORES_VERSION = 1
+SCORES_VERSION = 2
 BASELINE = "none"
 STATE_CONDITIONS = ("none", "ee", "joint", "both")
 CONTROL_CONDITIONS = ("both_shuffled", "both_noisy", "state_only", "primitives")
@@ -61,10 +81,14 @@ PAIRED_METRICS = (
     "final_all_correct",
     "final_words",
     "final_hits_per_word",
-    "seg_points",
-    "seg_f1_tol1",
-    "seg_edit",
+    # segmentation at the out-of-sample (leave-one-episode-out) threshold; lifts are over random chance
+    "seg_loo_points",
+    "seg_loo_f1_tol1",
+    "seg_loo_f1_tol1_lift",
+    "seg_loo_edit_lift",
+    "seg_loo_f1_at_25_lift",
 )
+DEFAULT_GROUP_SIZE = 5
 MISSING_POLICY = (
     "A frame caption with status 'missing', an empty text, or no entry in the transcript is a gap: the trace "
     "keeps its place and every pair touching it is NaN, which never makes a boundary. A missing final or scene "
@@ -298,6 +322,7 @@ def score_run(
     encoder=None,
     *,
     embedding_cache: str | Path | None = None,
+    chance_cache: str | Path | None = None,
     threshold: float = DEFAULT_THRESHOLD,
     thresholds: Sequence[float] = THRESHOLDS,
     comparisons: Sequence[tuple[str, str]] | None = None,
@@ -312,7 +337,8 @@ def score_run(
 
     ``encoder`` is an ``embeddings.EncoderSpec`` (default: the packaged all-MiniLM-L6-v2); embeddings are cached
     in ``embedding_cache`` (default <cache root>/embeddings, shared by every run: its entries are keyed
-    by encoder and text), so re-scoring a run needs no torch. ``judge`` (off by
+    by encoder and text), so re-scoring a run needs no torch. Chance baselines are cached in ``chance_cache``
+    (default: next to the embedding cache, ``<cache root>/chance``). ``judge`` (off by
     default) is any vlmproprio Backend that also grades the final captions; its agreement with the rubric
     goes to scores/judge.json."""
     from vlmproprio.embeddings import CachedEmbedder, EmbeddingStore, encoder_spec
@@ -349,6 +375,7 @@ def score_run(
     t_embedded = time.perf_counter()
 
     rows, sweep_rows, audit, traces = [], [], {}, {}
+    cell_sweeps: dict[tuple[str, str, str], list[dict]] = {}
     lexicons = {}
     finals: list[tuple[str, CaptionScore, str, Episode, str]] = []
     for t in transcripts:
@@ -364,7 +391,9 @@ def score_run(
         texts, statuses = aligned[(t.model, t.episode_id, t.condition)]
         trace = cosine_trace([vectors[x] if s != "missing" else None for x, s in zip(texts, statuses, strict=True)])
         labels = ep.frame_phases
-        at = evaluate_segmentation(trace, labels, threshold)
+        points = sweep(trace, labels, (*thresholds, threshold))
+        at = points[-1]
+        cell_sweeps[(t.model, t.episode_id, t.condition)] = [sp.flat() for sp in points[:-1]]
         row = {
             "model": t.model,
             "episode_id": t.episode_id,
@@ -387,9 +416,9 @@ def score_run(
             **_trace_stats(trace),
         }
         rows.append(row)
-        for sp in sweep(trace, labels, thresholds):
+        for sp in cell_sweeps[(t.model, t.episode_id, t.condition)]:
             sweep_rows.append(
-                {"model": t.model, "episode_id": t.episode_id, "task": ep.task, "condition": t.condition} | sp.flat()
+                {"model": t.model, "episode_id": t.episode_id, "task": ep.task, "condition": t.condition} | sp
             )
         audit[key] = {
             "expectation": exp.to_dict(),
@@ -407,13 +436,21 @@ def score_run(
             "true_phases": labels,
         }
     t_scored = time.perf_counter()
+    group_size = _group_size(manifest)
+    truths = {e: truth_of(ep.frame_phases) for e, ep in episodes.items()}
+    add_out_of_sample(rows, cell_sweeps, thresholds)
+    chance_dir = Path(chance_cache) if chance_cache is not None else cache_dir.parent / "chance"
+    with ChanceTable(chance_dir) as chance:
+        add_chance(rows, truths, chance, group_size)
+    for r in rows:
+        traces[f"{r['model']}/{r['episode_id']}__{r['condition']}"]["loo_threshold"] = r["seg_loo_threshold"]
+    t_chance = time.perf_counter()
 
     rows = _sort_rows(rows, episode_order, conds)
     sweep_rows = _sort_rows(sweep_rows, episode_order, conds)
     skip = (*ID_COLUMNS, "seg_threshold", "threshold")
     aggregate = _group_means(rows, ("model", "task", "condition"), skip, add_all_task=True)
     sweep_aggregate = _group_means(sweep_rows, ("model", "task", "condition", "threshold"), skip, add_all_task=True)
-    _add_best_threshold(aggregate, sweep_aggregate)
     aggregate = _sort_rows(aggregate, episode_order, conds)
     sweep_aggregate = _sort_rows(sweep_aggregate, episode_order, conds)
     comps = list(comparisons) if comparisons is not None else default_comparisons(conds)
@@ -435,6 +472,18 @@ def score_run(
             "default_threshold": threshold,
             "thresholds": list(thresholds),
             "tolerances": list(TOLERANCES),
+            "iou_thresholds": list(IOU_THRESHOLDS),
+            "out_of_sample": LOO_RULE,
+            "chance": {
+                "metrics": list(CHANCE_METRICS),
+                "random": "same number of points at uniformly random positions: exact when at most "
+                f"{CHANCE_DRAWS} sets are possible, else the mean of {CHANCE_DRAWS} draws (seed {CHANCE_SEED})",
+                "even": "the same number of points evenly spaced",
+                "groups": f"points at the edges of the pipeline's frame groups (k = {group_size})",
+                "lift": "score - random chance",
+                "group_size": group_size,
+                "exact_share": chance.exact_share(),
+            },
             "boundary": "segmentation point j where cos(caption j, caption j+1) < threshold",
             "missing_frames": MISSING_POLICY,
         },
@@ -452,7 +501,9 @@ def score_run(
         "load_s": t_loaded - t_start,
         "embed_s": t_embedded - t_loaded,
         "score_segment_s": t_scored - t_embedded,
-        "stats_s": t_stats - t_scored,
+        "chance_s": t_chance - t_scored,
+        "chance": {"computed": chance.computed, "cached": chance.cached},
+        "stats_s": t_stats - t_chance,
         "embeddings": embedder.stats.to_dict(),
     }
     judged = None
@@ -478,17 +529,143 @@ def judge_table(backend, finals: list[tuple[str, CaptionScore, str, Episode, str
     }
 
 
-def _add_best_threshold(aggregate: list[dict], sweep_aggregate: list[dict]) -> None:
-    best: dict[tuple, dict] = {}
-    for r in sweep_aggregate:
-        k = (r["model"], r["task"], r["condition"])
-        f1 = r.get("f1_tol1")
-        if f1 is not None and (k not in best or f1 > best[k]["f1_tol1"]):
-            best[k] = r
-    for a in aggregate:
-        b = best.get((a["model"], a["task"], a["condition"]))
-        a["seg_best_threshold"] = b["threshold"] if b else None
-        a["seg_best_f1_tol1"] = b["f1_tol1"] if b else None
+LOO_RULE = (
+    "leave one episode out: for each episode, the threshold with the highest mean boundary F1 (+-1 frame) over "
+    "the other episodes of the same task, model and condition (ties: the lowest threshold), applied to it"
+)
+
+
+def _group_size(manifest: dict) -> int:
+    """The pipeline's frame-group size k from run.json (every model of a run must agree; default 5)."""
+    sizes = {
+        m.get("pipeline", {}).get("k")
+        for m in manifest.get("models", [])
+        if isinstance(m, dict) and isinstance(m.get("pipeline"), dict)
+    }
+    sizes.discard(None)
+    if len(sizes) > 1:
+        raise ScoreRunError(f"run.json: models use different frame-group sizes {sorted(sizes)}; score them apart")
+    return int(next(iter(sizes))) if sizes else DEFAULT_GROUP_SIZE
+
+
+def loo_thresholds(cell_sweeps: dict[tuple[str, str, str], list[dict]], tasks: dict[str, str]) -> dict:
+    """(model, episode, condition) -> the threshold chosen on the other episodes of its task (LOO_RULE); None
+    when the task has no other episode."""
+    groups: dict[tuple[str, str, str], list[str]] = {}
+    for model, episode, condition in cell_sweeps:
+        groups.setdefault((model, tasks[episode], condition), []).append(episode)
+    out = {}
+    for (model, _task, condition), members in groups.items():
+        for held_out in members:
+            others = [cell_sweeps[(model, e, condition)] for e in members if e != held_out]
+            if not others:
+                out[(model, held_out, condition)] = None
+                continue
+            best_thr, best_f1 = None, -1.0
+            for i, point in enumerate(others[0]):
+                f1 = math.fsum(o[i]["f1_tol1"] for o in others) / len(others)
+                if f1 > best_f1:
+                    best_thr, best_f1 = point["threshold"], f1
+            out[(model, held_out, condition)] = best_thr
+    return out
+
+
+SEG_COLUMNS = ("points", "p_tol0", "r_tol0", "f1_tol0", "p_tol1", "r_tol1", "f1_tol1", "p_tol2", "r_tol2", "f1_tol2")
+
+
+def add_out_of_sample(rows: list[dict], cell_sweeps: dict, thresholds: Sequence[float]) -> None:
+    """Add ``seg_loo_threshold`` and every sweep metric at it as ``seg_loo_*`` to each row."""
+    chosen = loo_thresholds(cell_sweeps, {r["episode_id"]: r["task"] for r in rows})
+    for r in rows:
+        cell = (r["model"], r["episode_id"], r["condition"])
+        thr = chosen[cell]
+        r["seg_loo_threshold"] = thr
+        point = next((p for p in cell_sweeps[cell] if p["threshold"] == thr), None)
+        for k, v in (point or {}).items():
+            if k != "threshold":
+                r[f"seg_loo_{k}"] = v
+
+
+CHANCE_CACHE_VERSION = 1
+
+
+class ChanceTable:
+    """Random-chance scores by (episode ground truth, number of points).
+
+    They depend on neither the model nor the run, so they are kept on disk (``<cache root>/chance``, diskcache,
+    keyed by the labels, the count, the number of draws, the seed and this code's version) as well as in
+    memory: a second scoring of any run reads them instead of drawing 10 000 sets again."""
+
+    def __init__(self, directory: str | Path | None = None) -> None:
+        self._random: dict[tuple, dict[str, float]] = {}
+        self._exact: dict[tuple, bool] = {}
+        self._dir = Path(directory) if directory is not None else None
+        self._disk = None
+        self.computed = 0
+        self.cached = 0
+
+    def __enter__(self) -> ChanceTable:
+        if self._dir is not None:
+            import diskcache
+
+            try:
+                self._disk = diskcache.Cache(str(self._dir))
+            except Exception as exc:  # any failure to open it (a file in the way, a locked or broken database)
+                raise ScoreRunError(f"{self._dir}: cannot open the chance-baseline cache ({exc})") from exc
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._disk is not None:
+            self._disk.close()
+            self._disk = None
+
+    def random(self, truth: Truth, k: int) -> dict[str, float]:
+        key = (truth.labels, k)
+        if key not in self._random:
+            disk_key = json.dumps(
+                [CHANCE_CACHE_VERSION, list(truth.labels), k, CHANCE_DRAWS, CHANCE_SEED, list(CHANCE_METRICS)]
+            )
+            value = self._disk.get(disk_key) if self._disk is not None else None
+            if value is None:
+                value = chance_random(truth, k)
+                self.computed += 1
+                if self._disk is not None:
+                    self._disk.set(disk_key, value)
+            else:
+                self.cached += 1
+            self._random[key] = value
+            self._exact[key] = math.comb(truth.n_frames - 1, k) <= CHANCE_DRAWS
+        return self._random[key]
+
+    def exact_share(self) -> float | None:
+        return sum(self._exact.values()) / len(self._exact) if self._exact else None
+
+
+def _chance_columns(prefix: str, row: dict, truth: Truth, chance: ChanceTable) -> None:
+    k = row.get(f"{prefix}points")
+    if k is None:
+        return
+    rand = chance.random(truth, int(k))
+    even = score_points(evenly_spaced(truth.n_frames, int(k)), truth)
+    for m in CHANCE_METRICS:
+        row[f"{prefix}{m}_chance"] = rand[m]
+        row[f"{prefix}{m}_lift"] = row[f"{prefix}{m}"] - rand[m]
+        row[f"{prefix}{m}_even"] = even[m]
+
+
+def add_chance(rows: list[dict], truths: dict[str, Truth], chance: ChanceTable, group_size: int) -> None:
+    """Chance baselines and lifts for the fixed-threshold (``seg_``) and out-of-sample (``seg_loo_``) scores,
+    and the score of boundaries at the frame-group edges (``seg_groups_``)."""
+    groups: dict[str, dict[str, float]] = {}
+    for r in rows:
+        truth = truths[r["episode_id"]]
+        _chance_columns("seg_", r, truth, chance)
+        _chance_columns("seg_loo_", r, truth, chance)
+        if r["episode_id"] not in groups:
+            edges = group_edges(truth.n_frames, group_size)
+            groups[r["episode_id"]] = {"points": float(len(edges))} | score_points(edges, truth)
+        for m, v in groups[r["episode_id"]].items():
+            r[f"seg_groups_{m}"] = v
 
 
 # ---------------------------------------------------------------------------------------------- writing
