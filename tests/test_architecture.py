@@ -27,6 +27,7 @@ STAGES: list[tuple[str, ...]] = [
     ("runner",),
     ("scoring", "embeddings", "segmentation"),
     ("stats",),
+    ("verdicts",),
     ("evaluation",),
     ("report",),
     ("cli", "pytest_plugin"),

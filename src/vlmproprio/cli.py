@@ -230,6 +230,7 @@ def cmd_score(args: argparse.Namespace) -> int:
         encoder=spec,
         embedding_cache=args.embedding_cache,
         threshold=args.threshold,
+        claims=args.claims,
     )
     t = tables.timing
     e = t["embeddings"]
@@ -237,7 +238,18 @@ def cmd_score(args: argparse.Namespace) -> int:
         f"scored {len(tables.rows)} transcripts into {args.run_dir / 'scores'} in {t['total_s']:.1f} s "
         f"(embeddings: {e['cached']} cached, {e['computed']} computed)"
     )
+    _print_verdicts(tables.verdicts)
     return 0
+
+
+def _print_verdicts(doc: dict) -> None:
+    """The verdict on each primary hypothesis and every sanity warning, one line each."""
+    from vlmproprio.verdicts import format_verdict
+
+    for w in doc.get("warnings", []):
+        print(f"WARNING {w['model']}: {w['message']}")
+    for v in doc.get("verdicts", []):
+        print(f"verdict {v['model']}: {format_verdict(v)}")
 
 
 # ---------------------------------------------------------------------------------------------- parser
@@ -433,6 +445,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=Path,
         default=None,
         help="embedding cache folder (default: $VLMPROPRIO_CACHE/embeddings, else ./.vlmproprio-cache/embeddings)",
+    )
+    p.add_argument(
+        "--claims",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="pre-registered primary hypotheses (default: the packaged claims.yml; format in docs/metrics.md)",
     )
     p.set_defaults(func=cmd_score)
 

@@ -68,6 +68,7 @@ from vlmproprio.segmentation import (
 )
 from vlmproprio.stats import DEFAULT_N_BOOT, DEFAULT_N_PERM, DEFAULT_SEED, paired_difference
 from vlmproprio.transcripts import Transcript, read_transcripts
+from vlmproprio.verdicts import ModelOutputs, load_claims, mark_families, sanity_warnings, verdicts
 
 SCORES_VERSION = 2
 BASELINE = "none"
@@ -113,6 +114,7 @@ class ScoreTables:
     meta: dict
     timing: dict = field(default_factory=dict)
     judge: dict | None = None  # only when a judge backend was given
+    verdicts: dict = field(default_factory=dict)  # claims, verdicts per model and hypothesis, sanity warnings
 
 
 # ---------------------------------------------------------------------------------------------- inputs
@@ -332,6 +334,7 @@ def score_run(
     verify: bool = True,
     write: bool = True,
     judge=None,
+    claims: str | Path | None = None,
 ) -> ScoreTables:
     """Score every transcript of a run and (by default) write RUN_DIR/scores/.
 
@@ -340,10 +343,12 @@ def score_run(
     by encoder and text), so re-scoring a run needs no torch. Chance baselines are cached in ``chance_cache``
     (default: next to the embedding cache, ``<cache root>/chance``). ``judge`` (off by
     default) is any vlmproprio Backend that also grades the final captions; its agreement with the rubric
-    goes to scores/judge.json."""
+    goes to scores/judge.json. ``claims`` is the file of pre-registered primary hypotheses (default: the packaged
+    vlmproprio/claims.yml); their verdicts and the sanity warnings go to scores/verdicts.json."""
     from vlmproprio.embeddings import CachedEmbedder, EmbeddingStore, encoder_spec
 
     t_start = time.perf_counter()
+    claim_set = load_claims(claims)
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise ScoreRunError(f"{run_dir}: run directory not found")
@@ -376,6 +381,7 @@ def score_run(
 
     rows, sweep_rows, audit, traces = [], [], {}, {}
     cell_sweeps: dict[tuple[str, str, str], list[dict]] = {}
+    outputs: dict[str, ModelOutputs] = {}
     lexicons = {}
     finals: list[tuple[str, CaptionScore, str, Episode, str]] = []
     for t in transcripts:
@@ -420,6 +426,12 @@ def score_run(
             sweep_rows.append(
                 {"model": t.model, "episode_id": t.episode_id, "task": ep.task, "condition": t.condition} | sp
             )
+        o = outputs.setdefault(t.model, ModelOutputs())
+        o.frames_missing += statuses.count("missing")
+        present = [x for x, st in zip(texts, statuses, strict=True) if st != "missing"]
+        o.frame_captions.extend(present)
+        o.all_captions.extend([*present, *scene_texts, final_text])
+        o.final_hits.append(final.hits)
         audit[key] = {
             "expectation": exp.to_dict(),
             "final": _caption_audit(t.final, t.final_status, final),
@@ -443,7 +455,11 @@ def score_run(
     with ChanceTable(chance_dir) as chance:
         add_chance(rows, truths, chance, group_size)
     for r in rows:
-        traces[f"{r['model']}/{r['episode_id']}__{r['condition']}"]["loo_threshold"] = r["seg_loo_threshold"]
+        tr = traces[f"{r['model']}/{r['episode_id']}__{r['condition']}"]
+        tr["loo_threshold"] = r["seg_loo_threshold"]
+        thr = r["seg_loo_threshold"]
+        tr["loo_boundaries"] = boundaries_at(np.array(tr["trace"], dtype=np.float64), thr) if thr is not None else []
+        outputs[r["model"]].cells.append((r["n_frames"], tr["loo_boundaries"]))
     t_chance = time.perf_counter()
 
     rows = _sort_rows(rows, episode_order, conds)
@@ -456,6 +472,14 @@ def score_run(
     comps = list(comparisons) if comparisons is not None else default_comparisons(conds)
     # already in a meaningful order: model, task, comparison (as listed), metric (as listed)
     paired = paired_table(rows, comps, n_boot=n_boot, n_perm=n_perm, seed=seed)
+    mark_families(paired, claim_set)
+    models = sorted({t.model for t in transcripts})
+    verdict_doc = {
+        "claims": claim_set.to_dict(),
+        "verdicts": verdicts(paired, claim_set, models),
+        "warnings": sanity_warnings({m: outputs[m] for m in models}, group_size),
+        "group_size": group_size,
+    }
     t_stats = time.perf_counter()
 
     meta = {
@@ -495,6 +519,8 @@ def score_run(
             "seed": seed,
             "ci": "percentile bootstrap 95%",
             "p_value": "two-sided sign-flip permutation (exact up to 16 pairs)",
+            "multiplicity": "primary hypotheses (scores/verdicts.json): Holm per model; every other paired test: "
+            "exploratory, Benjamini-Hochberg q-value per model",
         },
     }
     timing = {
@@ -510,7 +536,9 @@ def score_run(
     if judge is not None:
         judged = judge_table(judge, finals)
         timing["judge_s"] = time.perf_counter() - t_stats
-    tables = ScoreTables(rows, aggregate, sweep_rows, sweep_aggregate, paired, audit, traces, meta, timing, judged)
+    tables = ScoreTables(
+        rows, aggregate, sweep_rows, sweep_aggregate, paired, audit, traces, meta, timing, judged, verdict_doc
+    )
     if write:
         write_score_tables(run_dir, tables)
     tables.timing["total_s"] = time.perf_counter() - t_start
@@ -713,6 +741,7 @@ def write_score_tables(run_dir: str | Path, tables: ScoreTables) -> list[Path]:
         "audit.json": dumps_json(tables.audit),
         "traces.json": dumps_json(tables.traces),
         "meta.json": dumps_json(tables.meta),
+        "verdicts.json": dumps_json(tables.verdicts),
         "timing.json": dumps_json(tables.timing),
     }
     if tables.judge is not None:
