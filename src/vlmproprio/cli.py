@@ -347,7 +347,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--conditions",
         default="all",
-        help="comma list of none, ee, joint, both, both_shuffled, "
+        help="comma list of none, ee, joint, both, both_shuffled, both_permuted, "
         "both_noisy, state_only, primitives; or paper, controls, all (default: all)",
     )
     p.add_argument("--episodes", nargs="+", metavar="ID", help="episode ids (default: every episode in --fixtures)")

@@ -73,7 +73,7 @@ from vlmproprio.verdicts import ModelOutputs, load_claims, mark_families, sanity
 SCORES_VERSION = 2
 BASELINE = "none"
 STATE_CONDITIONS = ("none", "ee", "joint", "both")
-CONTROL_CONDITIONS = ("both_shuffled", "both_noisy", "state_only", "primitives")
+CONTROL_CONDITIONS = ("both_shuffled", "both_permuted", "both_noisy", "state_only", "primitives")
 PAIRED_METRICS = (
     "final_object_correct",
     "final_action_correct",
@@ -469,6 +469,7 @@ def score_run(
     sweep_aggregate = _group_means(sweep_rows, ("model", "task", "condition", "threshold"), skip, add_all_task=True)
     aggregate = _sort_rows(aggregate, episode_order, conds)
     sweep_aggregate = _sort_rows(sweep_aggregate, episode_order, conds)
+    controls = control_correlations(root, episodes, conds)
     comps = list(comparisons) if comparisons is not None else default_comparisons(conds)
     # already in a meaningful order: model, task, comparison (as listed), metric (as listed)
     paired = paired_table(rows, comps, n_boot=n_boot, n_perm=n_perm, seed=seed)
@@ -511,6 +512,7 @@ def score_run(
             "boundary": "segmentation point j where cos(caption j, caption j+1) < threshold",
             "missing_frames": MISSING_POLICY,
         },
+        "controls": controls,
         "stats": {
             "comparisons": [list(c) for c in comps],
             "metrics": list(PAIRED_METRICS),
@@ -555,6 +557,41 @@ def judge_table(backend, finals: list[tuple[str, CaptionScore, str, Episode, str
         "agreement": judge_agreement([s for _, s, _, _, _ in finals], verdicts),
         "verdicts": {key: v.to_dict() for (key, _, _, _, _), v in zip(finals, verdicts, strict=True)},
     }
+
+
+def control_correlations(root: Path, episodes: dict[str, Episode], conditions: Sequence[str]) -> dict:
+    """Per condition with numeric state (controls and the paper's own-state conditions alike), per task and
+    state dimension: the mean, min and max over episodes of the Pearson r between the numbers the prompts
+    showed and the episode's true states (conditions.state_correlations) -- how much a control still tells."""
+    from vlmproprio.conditions import STATE_DIMENSIONS, get_condition, state_correlations
+
+    known = [c for c in conditions if c in (*STATE_CONDITIONS, *CONTROL_CONDITIONS)]
+    numeric = [get_condition(c) for c in known if get_condition(c).numeric_state]
+    if not numeric:
+        return {}
+    peers = list(episodes.values())
+    if any(c.source in ("shuffled", "permuted") for c in numeric):
+        # partners come from every episode of the fixtures, as in the run (runner.run)
+        loaded = set(episodes)
+        peers += [e for e in load_episodes(root, verify=False) if e.episode_id not in loaded]
+    out: dict = {}
+    for cond in numeric:
+        per_task: dict[str, dict[str, list[float]]] = {}
+        for ep in sorted(episodes.values(), key=lambda e: e.episode_id):
+            rs = state_correlations(ep, cond, peers)
+            for task in (ep.task, "all"):
+                for dim, r in rs.items():
+                    if r is not None:
+                        per_task.setdefault(task, {}).setdefault(dim, []).append(r)
+        out[cond.name] = {
+            task: {
+                dim: {"mean_r": math.fsum(v) / len(v), "min_r": min(v), "max_r": max(v), "n": len(v)}
+                for dim in STATE_DIMENSIONS
+                if (v := dims.get(dim))
+            }
+            for task, dims in per_task.items()
+        }
+    return out
 
 
 LOO_RULE = (
