@@ -574,6 +574,7 @@ def sweep(
     sc = score_masks(masks, truth, tolerances)
     m = len(truth.boundaries)
     out = []
+    unmerged_of: dict[tuple[int, ...], float] = {}  # neighbouring thresholds often give the same points
     for i, thr in enumerate(thresholds):
         k = int(sc["points"][i])
         prf = {
@@ -589,7 +590,10 @@ def sweep(
         }
         seg = {iou_key(tau): float(sc[iou_key(tau)][i]) for tau in IOU_THRESHOLDS}
         seg["frame_acc"] = float(sc["frame_acc"][i])
-        unmerged = edit_score_unmerged(boundaries_at(t, thr), true_labels)
+        pts = tuple(boundaries_at(t, thr))
+        if pts not in unmerged_of:
+            unmerged_of[pts] = edit_score_unmerged(pts, true_labels)
+        unmerged = unmerged_of[pts]
         out.append(SweepPoint(thr, k, prf, float(sc["edit"][i]), seg, unmerged))
     return out
 
