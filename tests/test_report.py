@@ -121,6 +121,12 @@ def test_markdown_tables_show_the_scores(run, page):
     verdict_lines = [x for x in lines[: lines.index("## Tables")] if x.startswith("- synthetic — ")]
     assert len(verdict_lines) == len(scores.verdicts["verdicts"]) >= 3
     assert "- synthetic — trajectory_both_vs_none: both > none on final_trajectory_correct (all): inconclusive" in md
+    # how strong each control is: its states' correlation with the true ones, from meta.json
+    controls = scores.meta["controls"]["both_shuffled"]["door"]
+    ctrl = _md_row(md, "both_shuffled", "door")
+    c_header = next(line for line in md.splitlines() if line.startswith("| condition | task | joints 1–7 |"))
+    c_cols = [c.strip() for c in c_header.strip("|").split(" | ")]
+    assert ctrl[c_cols.index("z")] == f"{controls['z']['mean_r']:+.2f}"
     assert "| synthetic | all | both − both_shuffled |" in md
     for name in PLOTS:
         assert f"]({name})" in md
