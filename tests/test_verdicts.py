@@ -99,6 +99,15 @@ def test_verdict_rule(d, p_holm, hi, want):
     assert verdict_of(None, 0.05) == "not tested"
 
 
+def test_binomial_tail_equals_scipy():
+    from scipy.stats import binomtest
+
+    from vlmproprio.verdicts import binomial_tail
+
+    for k, n, p in [(4, 4, 0.2), (0, 10, 0.3), (340, 1194, 0.188), (3, 50, 0.01), (50, 50, 0.5), (1, 1, 0.999)]:
+        assert binomial_tail(k, n, p) == pytest.approx(binomtest(k, n, p, alternative="greater").pvalue, rel=1e-9)
+
+
 def test_non_words_and_group_edges():
     assert non_word_share(["The robot moves 0.25 m up.", "x1y2 ### ok"]) == (pytest.approx(2 / 9), 9)
     # two 11-frame cells, k = 5: edges at 4 and 9 (2 of 10 positions)
