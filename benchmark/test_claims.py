@@ -1,56 +1,73 @@
-"""The paper's claims as gates, per model and task (expectations in benchmark/claims.yml).
+"""The verdict gates, per model (expectations in benchmark/claims.yml, hypotheses in vlmproprio/claims.yml).
 
-A claim "A beats B on metric M" holds on a task when, paired by episode, the mean difference A - B is
-positive and its p-value (exact sign-flip / permutation test, vlmproprio.stats) is below ``alpha``.
-The test fails whenever the observed outcome differs from the recorded expectation, in either direction,
-so what a model shows can never change silently.
+For every pre-registered primary hypothesis the verdict of the model's scored run (Holm-corrected within the
+model's primary family, vlmproprio.verdicts) must equal the one recorded; the model's sanity warnings must be
+the ones recorded. Either direction of a change fails, so what a model shows can never change silently.
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
 import yaml
 
-CLAIMS = yaml.safe_load((Path(__file__).parent / "claims.yml").read_text())
+from vlmproprio.verdicts import format_verdict, load_claims
+
+EXPECTED = yaml.safe_load((Path(__file__).parent / "claims.yml").read_text())
+CLAIMS = load_claims()
 
 
-def _observed(paired: list[dict], slug: str, task: str, spec: dict) -> dict:
-    for r in paired:
-        if (r["model"], r["task"], r["metric"], r["a"], r["b"]) == (slug, task, spec["metric"], spec["a"], spec["b"]):
-            return r
-    raise LookupError(f"no paired comparison {spec['a']} vs {spec['b']} on {spec['metric']} for {slug}/{task}")
+def _verdicts(bench_model) -> dict:
+    return json.loads((bench_model.run_dir / "scores" / "verdicts.json").read_text())
 
 
-def holds(row: dict, alpha: float) -> bool:
-    return row["mean_diff"] > 0 and row["p_value"] < alpha
-
-
-@pytest.mark.parametrize("claim", list(CLAIMS["claims"]))
-def test_paper_claim(bench_model, bench_session, claim: str) -> None:
-    from vlmproprio.backends.registry import model_slug
+def _require_full_run(bench_model, bench_session) -> None:
     from vlmproprio.episodes import list_episode_ids
 
-    spec = CLAIMS["claims"][claim]
     if set(bench_model.episodes) != set(list_episode_ids(bench_session.fixtures)):
-        pytest.skip("the claims are judged on every episode of the fixtures; run without --episodes")
-    missing = {spec["a"], spec["b"]} - set(bench_model.conditions)
+        pytest.skip("the verdicts are judged on every episode of the fixtures; run without --episodes")
+
+
+def test_expectations_name_known_hypotheses() -> None:
+    ids = {h.id for h in CLAIMS.hypotheses}
+    for model, exp in EXPECTED["expected"].items():
+        assert set(exp) <= ids, f"benchmark/claims.yml: {model} names unknown hypotheses {set(exp) - ids}"
+        assert set(exp.values()) <= {"supported", "not supported", "inconclusive"}, model
+
+
+@pytest.mark.parametrize("hypothesis", [h.id for h in CLAIMS.hypotheses])
+def test_primary_verdict(bench_model, bench_session, hypothesis: str) -> None:
+    from vlmproprio.backends.registry import model_slug
+
+    _require_full_run(bench_model, bench_session)
+    h = next(h for h in CLAIMS.hypotheses if h.id == hypothesis)
+    missing = {h.a, h.b} - set(bench_model.conditions)
     if missing:
-        pytest.skip(f"claim {claim} needs condition(s) {', '.join(sorted(missing))} (see --conditions)")
+        pytest.skip(f"{hypothesis} needs condition(s) {', '.join(sorted(missing))} (see --conditions)")
     slug = model_slug(bench_model.name)
-    alpha = CLAIMS["alpha"]
-    observed = {task: _observed(bench_model.paired, slug, task, spec) for task in ("door", "pick_place", "all")}
-    summary = "; ".join(
-        f"{t}: diff {r['mean_diff']:+.3f} [{r['ci_low']:+.3f}, {r['ci_high']:+.3f}] p={r['p_value']:.4f} "
-        f"-> {'holds' if holds(r, alpha) else 'does not hold'}"
-        for t, r in observed.items()
-    )
-    expected = CLAIMS["expected"].get(bench_model.name, {}).get(claim)
+    got = next(v for v in _verdicts(bench_model)["verdicts"] if v["model"] == slug and v["hypothesis"] == hypothesis)
+    expected = EXPECTED["expected"].get(bench_model.name, {}).get(hypothesis)
     if expected is None:
-        pytest.skip(f"no expectation recorded in benchmark/claims.yml for {bench_model.name}; observed {summary}")
-    wrong = [t for t, exp in expected.items() if holds(observed[t], alpha) != exp]
-    assert not wrong, (
-        f"{bench_model.name}: claim '{claim}' ({spec['description']}) differs from benchmark/claims.yml on "
-        f"{', '.join(wrong)}. Observed {summary}. If the change is meant, update the expectation."
+        pytest.skip(f"no expectation in benchmark/claims.yml for {bench_model.name}; observed {format_verdict(got)}")
+    assert got["verdict"] == expected, (
+        f"{bench_model.name}: {format_verdict(got)}; benchmark/claims.yml expects '{expected}'. "
+        "If the change is meant, update the expectation."
     )
+
+
+def test_sanity_warnings(bench_model, bench_session) -> None:
+    _require_full_run(bench_model, bench_session)
+    expected = EXPECTED["warnings"].get(bench_model.name)
+    warnings = _verdicts(bench_model)["warnings"]
+    kinds = sorted(w["kind"] for w in warnings)
+    if expected is None:
+        pytest.skip(f"no warnings recorded in benchmark/claims.yml for {bench_model.name}; observed {kinds}")
+    assert kinds == sorted(expected), (
+        f"{bench_model.name}: warnings {kinds} but benchmark/claims.yml expects {sorted(expected)}: "
+        + "; ".join(w["message"] for w in warnings)
+    )
+    if "gibberish" in kinds or "near-constant" in kinds:
+        # a model flagged as unreadable must not have a supported claim
+        assert not [v for v in _verdicts(bench_model)["verdicts"] if v["verdict"] == "supported"]

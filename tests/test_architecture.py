@@ -27,6 +27,7 @@ STAGES: list[tuple[str, ...]] = [
     ("runner", "show"),
     ("scoring", "embeddings", "segmentation"),
     ("stats", "power"),
+    ("verdicts",),
     ("evaluation", "frame_table", "sidecars"),
     ("report",),
     ("dataset_export", "inspect"),

@@ -169,3 +169,33 @@ def test_reference_reads_only_this_episodes_states(episodes) -> None:
     assert with_example[0].frame_texts == no_example[0].frame_texts
     assert [s.text for s in with_example[0].scenes] == [s.text for s in no_example[0].scenes]
     assert with_example[0].final == no_example[0].final
+
+
+def test_every_episode_is_a_partner_once_and_permuted_states_have_no_timeline(all_episodes) -> None:
+    from vlmproprio.conditions import _partner, state_correlations
+
+    for task in ("door", "pick_place"):
+        eps = [e for e in all_episodes if e.task == task]
+        partners = [_partner(e, all_episodes).episode_id for e in eps]
+        assert sorted(partners) == sorted(e.episode_id for e in eps)  # a permutation: each used exactly once
+        assert all(p != e.episode_id for p, e in zip(partners, eps, strict=True))
+        if task == "pick_place":
+            by_id = {e.episode_id: e for e in eps}
+            assert all(by_id[p].target_bin.index != e.target_bin.index for p, e in zip(partners, eps, strict=True))
+    ep = next(e for e in all_episodes if e.episode_id == "bin2_01")
+    shuffled = frame_states(ep, get_condition("both_shuffled"), all_episodes)
+    permuted = frame_states(ep, get_condition("both_permuted"), all_episodes)
+    # the same numbers as the partner's (resampled) states, in another order, and the same order every run
+    assert np.array_equal(np.sort(permuted.ee, axis=0), np.sort(shuffled.ee, axis=0))
+    assert not np.array_equal(permuted.ee, shuffled.ee[::-1])
+    assert np.array_equal(frame_states(ep, get_condition("both_permuted"), all_episodes).joints, permuted.joints)
+    own = state_correlations(ep, get_condition("both"), all_episodes)
+    assert all(r is None or r == pytest.approx(1.0) for r in own.values()) and own["z"] == pytest.approx(1.0)
+    rs = [
+        abs(r)
+        for e in all_episodes
+        for r in state_correlations(e, get_condition("both_permuted"), all_episodes).values()
+        if r is not None
+    ]
+    assert np.mean(rs) < 0.35  # a random order keeps next to nothing of the timeline
+    assert state_correlations(ep, get_condition("none"), all_episodes) == {}

@@ -14,7 +14,7 @@ from report_helpers import CONDS, EVIL, NEGATED_FINAL, add_model, make_run, scor
 from scoring_helpers import prefill_embeddings
 from vlmproprio.report import ReportError, compare_runs, load_run_scores, write_report
 from vlmproprio.report.page import highlight
-from vlmproprio.report.tables import fmt_paired, fmt_value
+from vlmproprio.report.tables import fmt_p, fmt_paired, fmt_value
 
 for _module in ("matplotlib", "jinja2"):
     pytest.importorskip(_module, reason="reports need the [report] extra: pip install 'vlmproprio[report]'")
@@ -84,12 +84,14 @@ def test_markdown_tables_show_the_scores(run, page):
     agg = scores.aggregate_row("synthetic", "door", "ee")
     ee = _md_row(md, "synthetic", "door", "ee")
     assert ee[cols.index("words")] == fmt_value("final_words", agg["final_words"])
-    seg_header = next(line for line in md.splitlines() if "| best thr |" in line)
+    seg_header = next(line for line in md.splitlines() if "| LOO thr |" in line)
     seg_cols = [c.strip() for c in seg_header.strip("|").split(" | ")]
     seg = [line for line in md.splitlines() if line.startswith("| synthetic | door | ee |") and line != "|"][1]
     seg = [c.strip() for c in seg.strip("|").split(" | ")]
-    assert seg[seg_cols.index("F1 @best")] == fmt_value("seg_best_f1_tol1", agg["seg_best_f1_tol1"])
-    assert seg[seg_cols.index("best thr")] == fmt_value("seg_best_threshold", agg["seg_best_threshold"])
+    assert seg[seg_cols.index("F1 LOO")] == fmt_value("seg_loo_f1_tol1", agg["seg_loo_f1_tol1"])
+    assert seg[seg_cols.index("F1 lift")] == fmt_value("seg_loo_f1_tol1_lift", agg["seg_loo_f1_tol1_lift"])
+    assert seg[seg_cols.index("chance F1")] == fmt_value("seg_loo_f1_tol1_chance", agg["seg_loo_f1_tol1_chance"])
+    assert "best thr" not in seg_cols  # the in-sample best is no table column
     # paired differences vs none, with CI and p-value, as in scores/paired.json
     p = next(
         r
@@ -102,7 +104,29 @@ def test_markdown_tables_show_the_scores(run, page):
     p_header = next(line for line in md.splitlines() if line.startswith("| model | task | A − B | n | object correct"))
     p_cols = [c.strip() for c in p_header.strip("|").split(" | ")]
     # all correct in 7 of 7 episodes with state, 0 without: exact sign-flip p = 2/2**7
-    assert row[p_cols.index("all correct")] == "+100 pp [+100, +100] p=0.016"
+    # exploratory: with its Benjamini-Hochberg q-value
+    q = fmt_p(
+        next(
+            r
+            for r in scores.paired
+            if (r["task"], r["metric"], r["a"], r["b"]) == ("all", "final_all_correct", "both", "none")
+        )["q_bh"]
+    )
+    assert row[p_cols.index("all correct")] == f"+100 pp [+100, +100] p=0.016 q={q}"
+    # the primary hypothesis carries a star and its Holm-adjusted p
+    assert row[p_cols.index("trajectory correct")].startswith("★ +100 pp [+100, +100] p=0.016 Holm p=")
+    # the verdicts come first: one line per primary hypothesis, before the run facts
+    lines = md.splitlines()
+    assert lines[2] == "## Verdicts"
+    verdict_lines = [x for x in lines[: lines.index("## Tables")] if x.startswith("- synthetic — ")]
+    assert len(verdict_lines) == len(scores.verdicts["verdicts"]) >= 3
+    assert "- synthetic — trajectory_both_vs_none: both > none on final_trajectory_correct (all): inconclusive" in md
+    # how strong each control is: its states' correlation with the true ones, from meta.json
+    controls = scores.meta["controls"]["both_shuffled"]["door"]
+    ctrl = _md_row(md, "both_shuffled", "door")
+    c_header = next(line for line in md.splitlines() if line.startswith("| condition | task | joints 1–7 |"))
+    c_cols = [c.strip() for c in c_header.strip("|").split(" | ")]
+    assert ctrl[c_cols.index("z")] == f"{controls['z']['mean_r']:+.2f}"
     assert "| synthetic | all | both − both_shuffled |" in md
     for name in PLOTS:
         assert f"]({name})" in md

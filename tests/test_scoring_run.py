@@ -102,7 +102,7 @@ def test_sweep_has_every_threshold_and_more_points_higher(tables):
 def test_aggregate_and_paired_tables(tables):
     door_none = next(a for a in tables.aggregate if (a["task"], a["condition"]) == ("door", "none"))
     assert door_none["n_episodes"] == 3 and door_none["final_action_correct"] == 1.0
-    assert door_none["seg_best_threshold"] in THRESHOLDS
+    assert "seg_best_threshold" not in door_none  # an in-sample choice is no score (only the sweep shows it)
     pairs = {(p["task"], p["metric"], p["a"], p["b"]): p for p in tables.paired}
     p = pairs[("all", "final_trajectory_correct", "both", "none")]
     assert p["n"] == 7 and p["mean_diff"] == 1.0 and p["p_value"] == 2 / 2**7
@@ -132,7 +132,7 @@ def test_written_files_are_valid_json_and_csv(tables, small_run):
         data = json.loads((out / f"{name}.json").read_text())
         lines = (out / f"{name}.csv").read_text().splitlines()
         assert len(lines) == len(data) + 1
-    assert json.loads((out / "meta.json").read_text())["scores_version"] == 1
+    assert json.loads((out / "meta.json").read_text())["scores_version"] == 2
 
 
 def _score_files(run: Path) -> dict[str, bytes]:
@@ -206,7 +206,9 @@ def test_cli_score(small_run, capsys):
     cache = run.parent / "cli-cache"
     prefill_embeddings(run, key.stdout.strip(), cache_dir=cache)
     assert main(["score", str(run), "--embedding-cache", str(cache)]) == 0
-    assert "scored 28 transcripts" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "scored 28 transcripts" in out
+    assert "verdict synthetic: trajectory_both_vs_none: both > none on final_trajectory_correct (all): " in out
     assert main(["score", str(run.parent / "missing")]) == 2
     assert "run directory not found" in capsys.readouterr().err
 
@@ -285,3 +287,67 @@ def test_real_encoder_cold_then_warm_in_another_process_is_bit_identical(tmp_pat
     across = [x for j, x in enumerate(tr["trace"]) if j in tr["true_boundaries"]]
     within = [x for j, x in enumerate(tr["trace"]) if j not in tr["true_boundaries"]]
     assert sum(within) / len(within) > sum(across) / len(across)
+
+
+# ---------------------------------------------------------------------------------------------- out of sample, chance
+
+
+def test_out_of_sample_threshold_is_chosen_on_the_other_episodes(tables):
+    """Recompute leave-one-episode-out from the sweep table: the held-out episode never picks its own threshold."""
+    sweep_by = {}
+    for s in tables.sweep:
+        sweep_by.setdefault((s["model"], s["task"], s["condition"], s["episode_id"]), {})[s["threshold"]] = s
+    for r in tables.rows:
+        others = [
+            v
+            for (m, t, c, e), v in sweep_by.items()
+            if (m, t, c) == (r["model"], r["task"], r["condition"]) and e != r["episode_id"]
+        ]
+        if not others:
+            assert r["seg_loo_threshold"] is None
+            continue
+        means = {thr: sum(o[thr]["f1_tol1"] for o in others) / len(others) for thr in THRESHOLDS}
+        best = max(means.values())
+        want = min(thr for thr, v in means.items() if math.isclose(v, best, rel_tol=0, abs_tol=1e-12))
+        assert r["seg_loo_threshold"] == want
+        own = sweep_by[(r["model"], r["task"], r["condition"], r["episode_id"])][want]
+        assert r["seg_loo_f1_tol1"] == own["f1_tol1"] and r["seg_loo_points"] == own["points"]
+
+
+def test_chance_columns_and_lift(tables):
+    from vlmproprio.segmentation import chance_random, truth_of
+
+    r = _rows(tables, episode_id="door_00", condition="ee")[0]
+    labels = tables.traces["synthetic/door_00__ee"]["true_phases"]
+    want = chance_random(truth_of(labels), r["seg_loo_points"])
+    assert r["seg_loo_f1_tol1_chance"] == want["f1_tol1"]
+    assert r["seg_loo_f1_tol1_lift"] == r["seg_loo_f1_tol1"] - want["f1_tol1"]
+    assert r["seg_loo_edit_lift"] == r["seg_loo_edit"] - want["edit"]
+    for col in ("seg_f1_tol1_even", "seg_loo_f1_at_50_chance", "seg_groups_f1_tol1", "seg_groups_points"):
+        assert isinstance(r[col], float), col
+    chance = tables.meta["segmentation"]["chance"]
+    assert chance["group_size"] == 5 and 0 <= chance["exact_share"] <= 1
+
+
+def test_paired_rows_are_primary_or_exploratory_with_corrected_p(tables, small_run):
+    from vlmproprio.verdicts import load_claims
+
+    claims = load_claims()
+    primary = [p for p in tables.paired if p["family"] == "primary"]
+    assert {p["hypothesis"] for p in primary} == {h.id for h in claims.hypotheses if h.b in CONDS}
+    for p in primary:
+        assert p["p_holm"] >= p["p_value"] and p["q_bh"] is None
+    expl = [p for p in tables.paired if p["family"] == "exploratory"]
+    assert len(expl) + len(primary) == len(tables.paired)
+    assert all(p["q_bh"] is None or p["q_bh"] >= p["p_value"] for p in expl)
+    from vlmproprio.stats import holm
+
+    assert [p["p_holm"] for p in primary] == holm([p["p_value"] for p in primary])
+    v = {x["hypothesis"]: x for x in tables.verdicts["verdicts"]}
+    # the template captions name the trajectory only with state: 7 of 7 episodes, p = 2/2**7 = 0.016 < 0.05,
+    # but the family has four hypotheses, so Holm's correction leaves it inconclusive
+    traj = v["trajectory_both_vs_none"]
+    assert traj["p_value"] == 2 / 2**7 and traj["mean_diff"] == 1.0
+    assert traj["p_holm"] > 0.05 and traj["verdict"] == "inconclusive"
+    csv_header = (small_run[0] / "scores" / "paired.csv").read_text().splitlines()[0].split(",")
+    assert {"family", "hypothesis", "p_holm", "q_bh"} <= set(csv_header)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import math
 
 import numpy as np
 import pytest
@@ -85,3 +86,55 @@ def test_paired_difference_direction_and_errors():
     with pytest.raises(ValueError, match="finite"):
         paired_difference([float("nan")], [1.0])
     assert paired_difference([], []).n == 0
+
+
+# ---------------------------------------------------------------------------------------------- multiplicity
+
+
+def _holm_by_definition(p: list[float], alpha: float) -> list[bool]:
+    """Holm's procedure as a sequence of decisions: reject while p_(i) <= alpha / (m - i + 1)."""
+    order = sorted(range(len(p)), key=lambda i: p[i])
+    reject = [False] * len(p)
+    for rank, i in enumerate(order):
+        if p[i] <= alpha / (len(p) - rank):
+            reject[i] = True
+        else:
+            break
+    return reject
+
+
+def _bh_by_definition(p: list[float], alpha: float) -> list[bool]:
+    """BH step-up: find the largest i with p_(i) <= i alpha / m, reject the i smallest."""
+    order = sorted(range(len(p)), key=lambda i: p[i])
+    m = len(p)
+    cut = max((r + 1 for r, i in enumerate(order) if p[i] <= (r + 1) * alpha / m), default=0)
+    reject = [False] * m
+    for i in order[:cut]:
+        reject[i] = True
+    return reject
+
+
+def test_holm_and_bh_decisions_match_their_definitions():
+    from vlmproprio.stats import benjamini_hochberg, holm
+
+    rng = np.random.default_rng(5)
+    for _ in range(300):
+        m = int(rng.integers(1, 30))
+        p = [float(x) for x in rng.uniform(0, 0.2, m) ** rng.uniform(0.5, 3)]
+        for alpha in (0.01, 0.05, 0.1):
+            assert [h <= alpha for h in holm(p)] == _holm_by_definition(p, alpha)
+            assert [q <= alpha for q in benjamini_hochberg(p)] == _bh_by_definition(p, alpha)
+
+
+def test_bh_equals_scipy_and_holm_known_values():
+    from scipy.stats import false_discovery_control
+
+    from vlmproprio.stats import benjamini_hochberg, holm
+
+    p = [0.01, 0.04, 0.03, 0.005, 0.2]
+    assert benjamini_hochberg(p) == pytest.approx(list(false_discovery_control(p, method="bh")), abs=1e-12)
+    # sorted 0.005, 0.01, 0.03, 0.04, 0.2 -> 5*0.005, 4*0.01, 3*0.03, 2*0.04 (running max), 0.2
+    assert holm(p) == pytest.approx([0.04, 0.09, 0.09, 0.025, 0.2])
+    assert holm([float("nan"), 0.01])[1] == 0.01 and math.isnan(holm([float("nan"), 0.01])[0])
+    with pytest.raises(ValueError):
+        holm([1.5])

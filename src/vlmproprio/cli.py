@@ -387,6 +387,7 @@ def cmd_score(args: argparse.Namespace) -> int:
         embedding_cache=cache_root_of(args) / "embeddings",
         threshold=args.threshold,
         progress=not args.no_progress,
+        claims=args.claims,
     )
     tables = _score_with_judge(args, score) if args.judge else score_run(args.run_dir, **score)
     csv_path = write_frames_csv(args.run_dir, tables)
@@ -405,7 +406,18 @@ def cmd_score(args: argparse.Namespace) -> int:
         print(
             f"judge {args.judge}: {agr['n']} final captions, {agr['unparsed']} unparsed; rubric vs judge kappa: {kappas}"
         )
+    _print_verdicts(tables.verdicts)
     return 0
+
+
+def _print_verdicts(doc: dict) -> None:
+    """The verdict on each primary hypothesis and every sanity warning, one line each."""
+    from vlmproprio.verdicts import format_verdict
+
+    for w in doc.get("warnings", []):
+        print(f"WARNING {w['model']}: {w['message']}")
+    for v in doc.get("verdicts", []):
+        print(f"verdict {v['model']}: {format_verdict(v)}")
 
 
 def cmd_power(args: argparse.Namespace) -> int:
@@ -737,6 +749,13 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--judge-threads", type=int, default=1, help="torch threads of a local judge (default 1)")
     g.add_argument("--base-url", help="OpenAI-compatible server URL for an openai: judge")
     g.add_argument("--api-key-env", default="OPENAI_API_KEY", help="environment variable holding the key")
+    p.add_argument(
+        "--claims",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="pre-registered primary hypotheses (default: the packaged claims.yml; format in docs/metrics.md)",
+    )
     p.set_defaults(func=cmd_score)
 
     p = sub.add_parser(

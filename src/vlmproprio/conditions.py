@@ -7,13 +7,20 @@ The paper's four conditions differ only in the state put next to each image:
 * ``joint``  images + joint state (7 angles + gripper opening)
 * ``both``   images + both
 
-Four controls make the comparison falsifiable:
+Five controls make the comparison falsifiable:
 
-* ``both_shuffled`` both states, but from another episode of the same task (for bins one with a different
-  target compartment), played backwards in time and resampled to this episode's frame count: numbers that
-  look real but carry the wrong trajectory. A model that merely writes longer captions when it sees numbers
-  scores as well here as under ``both``; one that reads them does worse. With no other episode of the task
-  available the episode's own states are played backwards.
+* ``both_shuffled`` both states, but from the partner episode (below), played backwards in time and
+  resampled to this episode's frame count: numbers that look real but carry the wrong trajectory. A model
+  that merely writes longer captions when it sees numbers scores as well here as under ``both``; one that
+  reads them does worse. Pick-and-place is nearly symmetric in time, so reversed states still correlate with
+  the true ones (the score's meta.json records how much, per dimension): a weak control.
+* ``both_permuted`` the partner's states, resampled, then put in a random order (seeded by the episode id):
+  the same numbers with no timeline at all, so they carry no information about when anything happens in
+  this episode -- the control that can falsify a segmentation claim.
+* the partner of an episode is the episode ``len // 2`` places further in the task's episodes sorted by id
+  (cyclically), so every episode of a task serves as partner exactly once; for the bin episodes (3 per
+  compartment) that is always one with another target compartment. With no other episode of the task the
+  episode's own states are used.
 * ``both_noisy``    both states plus Gaussian noise, seeded by the episode id, with standard deviations
   ``NOISE_STD``: joint angles 0.05 rad, gripper 0.005 m, position 0.02 m, roll/pitch/yaw 0.05 rad (small
   against the motions, large against the printed precision of 0.001).
@@ -44,7 +51,7 @@ class Condition:
     ee: bool = False
     images: bool = True
     words: bool = False  # state as motion-primitive words instead of numbers
-    source: str = "own"  # own | shuffled | noisy
+    source: str = "own"  # own | shuffled | permuted | noisy
     control: bool = False
 
     @property
@@ -57,7 +64,7 @@ class Condition:
 
 
 PAPER_CONDITIONS = ("none", "ee", "joint", "both")
-CONTROLS = ("both_shuffled", "both_noisy", "state_only", "primitives")
+CONTROLS = ("both_shuffled", "both_permuted", "both_noisy", "state_only", "primitives")
 BASELINE = "none"
 
 CONDITIONS: dict[str, Condition] = {
@@ -73,6 +80,14 @@ CONDITIONS: dict[str, Condition] = {
             joints=True,
             ee=True,
             source="shuffled",
+            control=True,
+        ),
+        Condition(
+            "both_permuted",
+            "images + another episode's states in random order",
+            joints=True,
+            ee=True,
+            source="permuted",
             control=True,
         ),
         Condition("both_noisy", "images + noisy states", joints=True, ee=True, source="noisy", control=True),
@@ -125,16 +140,20 @@ def _resample(a: np.ndarray, n: int) -> np.ndarray:
 
 
 def _partner(episode: Episode, peers: Sequence[Episode]) -> Episode | None:
-    """The next episode (by id, cyclically) of the same task, preferring a different target compartment."""
-    same_task = sorted((p for p in peers if p.task == episode.task), key=lambda p: p.episode_id)
-    others = [p for p in same_task if p.episode_id != episode.episode_id]
-    if episode.target_bin is not None:
-        other_bin = [p for p in others if p.target_bin is None or p.target_bin.index != episode.target_bin.index]
-        others = other_bin or others
-    if not others:
+    """The episode ``len // 2`` places further among the task's episodes sorted by id (cyclically): a
+    permutation of the task's episodes, so each one is a partner exactly once; None if the task has no other."""
+    same_task = sorted({p.episode_id: p for p in [*peers, episode] if p.task == episode.task}.values(),
+                       key=lambda p: p.episode_id)  # fmt: skip
+    n = len(same_task)
+    if n < 2:
         return None
-    later = [p for p in others if p.episode_id > episode.episode_id]
-    return (later or others)[0]
+    i = next(i for i, p in enumerate(same_task) if p.episode_id == episode.episode_id)
+    return same_task[(i + n // 2) % n]
+
+
+def _permutation(episode: Episode, n: int) -> np.ndarray:
+    seed = int.from_bytes(hashlib.sha256(f"both_permuted/{episode.episode_id}".encode()).digest()[:8], "little")
+    return np.random.default_rng(seed).permutation(n)
 
 
 def _noise_rng(episode: Episode) -> np.random.Generator:
@@ -153,11 +172,15 @@ def motion_words(ee: np.ndarray, joints: np.ndarray) -> list[str]:
 
 def frame_states(episode: Episode, condition: Condition, peers: Sequence[Episode] = ()) -> FrameStates:
     joints, ee = episode.joints_array(), episode.ee_array()
-    if condition.source == "shuffled":
+    if condition.source in ("shuffled", "permuted"):
         partner = _partner(episode, peers)
         src_j, src_e = (partner.joints_array(), partner.ee_array()) if partner else (joints, ee)
         n = len(episode.frames)
-        joints, ee = _resample(src_j[::-1], n), _resample(src_e[::-1], n)
+        if condition.source == "shuffled":
+            joints, ee = _resample(src_j[::-1], n), _resample(src_e[::-1], n)
+        else:
+            order = _permutation(episode, n)
+            joints, ee = _resample(src_j, n)[order], _resample(src_e, n)[order]
     elif condition.source == "noisy":
         rng = _noise_rng(episode)
         joints = joints + rng.normal(0.0, 1.0, joints.shape) * NOISE_STD[0]
@@ -167,3 +190,30 @@ def frame_states(episode: Episode, condition: Condition, peers: Sequence[Episode
         ee=ee if condition.ee else None,
         words=motion_words(ee, joints) if condition.words else None,
     )
+
+
+STATE_DIMENSIONS = (*(f"joint{i}" for i in range(1, 8)), "gripper", "x", "y", "z", "roll", "pitch", "yaw")
+
+
+def state_correlations(
+    episode: Episode, condition: Condition, peers: Sequence[Episode] = ()
+) -> dict[str, float | None]:
+    """Pearson r, per state dimension, between the numbers a condition shows and the episode's true states
+    over its frames (None where either side is constant, or the condition shows no numbers): how much a
+    control still tells about the episode."""
+    if not condition.numeric_state:
+        return {}
+    shown = frame_states(episode, condition, peers)
+    full = frame_states(episode, Condition("both", "", joints=True, ee=True), peers)
+    a = np.concatenate([full.joints, full.ee], axis=1)
+    b = np.concatenate([shown.joints if shown.joints is not None else np.full_like(full.joints, np.nan),
+                        shown.ee if shown.ee is not None else np.full_like(full.ee, np.nan)], axis=1)  # fmt: skip
+    out: dict[str, float | None] = {}
+    for i, name in enumerate(STATE_DIMENSIONS):
+        x, y = a[:, i], b[:, i]
+        if not np.isfinite(y).all() or np.ptp(x) == 0 or np.ptp(y) == 0:
+            out[name] = None
+            continue
+        xc, yc = x - x.mean(), y - y.mean()
+        out[name] = float(np.dot(xc, yc) / np.sqrt(np.dot(xc, xc) * np.dot(yc, yc)))
+    return out

@@ -4,12 +4,23 @@ Reads ``RUN_DIR/run.json`` (for the fixture root) and every transcript under
 ``RUN_DIR/transcripts/``, loads the ground truth of each episode, and writes:
 
 * ``rows.json`` / ``rows.csv``: one row per (model, episode, condition) with every metric;
-* ``aggregate.json`` / ``aggregate.csv``: means per (model, task, condition), task "all" included,
-  with the best threshold of the sweep (highest mean boundary F1 at +-1 frame; ties: the lowest threshold);
+* ``aggregate.json`` / ``aggregate.csv``: means per (model, task, condition), task "all" included;
 * ``sweep.json`` / ``sweep.csv``: per (model, episode, condition, threshold 0.00..1.00): number of
-  segmentation points, boundary P/R/F1 at tolerance 0/1/2 frames, edit score;
+  segmentation points, boundary P/R/F1 at tolerance 0/1/2 frames, MS-TCN edit score, F1@{10,25,50},
+  frame accuracy and the unmerged edit score;
   ``sweep_aggregate.json`` / ``.csv``: their means per (model, task, condition, threshold);
-* ``paired.json`` / ``paired.csv``: condition differences paired by episode (bootstrap CI, sign-flip p);
+* ``paired.json`` / ``paired.csv``: condition differences paired by episode (bootstrap CI, sign-flip p), each
+  marked primary (a pre-registered hypothesis, Holm-corrected) or exploratory (Benjamini-Hochberg q);
+* ``verdicts.json``: per model and primary hypothesis supported / not supported / inconclusive, and the
+  sanity warnings (vlmproprio.verdicts);
+
+Segmentation is scored at the paper's fixed threshold (columns ``seg_*``) and at a threshold chosen out of
+sample (``seg_loo_*``): for each episode, the threshold with the best mean boundary F1 (+-1 frame) on the
+*other* episodes of its task, same model and condition (ties: the lowest). Every segmentation metric has
+chance baselines for the same number of points (``*_chance``: random positions, exact or 10 000 seeded
+draws; ``*_even``: evenly spaced) and its lift over random chance (``*_lift``); ``seg_groups_*`` scores
+boundaries at the edges of the pipeline's frame groups. The in-sample best threshold is not a score: it
+exists only in the sweep tables (and the report's sweep plot, marked optimistic).
 * ``audit.json``: per caption, every matched span with its verdict, and what was expected;
 * ``traces.json``: every similarity trace with its predicted and true boundaries;
 * ``meta.json``: encoder name, revision and key, lexicon versions and hashes, settings;
@@ -37,22 +48,32 @@ from vlmproprio.episodes import Episode, atomic_write_text, load_episodes
 from vlmproprio.errors import VlmproprioError
 from vlmproprio.scoring import ITEMS, CaptionScore, expectation_for, load_lexicon, score_text
 from vlmproprio.segmentation import (
+    CHANCE_DRAWS,
+    CHANCE_METRICS,
+    CHANCE_SEED,
     DEFAULT_THRESHOLD,
+    IOU_THRESHOLDS,
     THRESHOLDS,
     TOLERANCES,
+    Truth,
     boundaries_at,
     caption_present,
+    chance_random,
     cosine_trace,
-    evaluate_segmentation,
+    evenly_spaced,
+    group_edges,
+    score_points,
     sweep,
+    truth_of,
 )
 from vlmproprio.stats import DEFAULT_N_BOOT, DEFAULT_N_PERM, DEFAULT_SEED, paired_difference
 from vlmproprio.transcripts import Transcript, read_transcripts
+from vlmproprio.verdicts import ModelOutputs, load_claims, mark_families, sanity_warnings, verdicts
 
-SCORES_VERSION = 1
+SCORES_VERSION = 2
 BASELINE = "none"
 STATE_CONDITIONS = ("none", "ee", "joint", "both")
-CONTROL_CONDITIONS = ("both_shuffled", "both_noisy", "state_only", "primitives")
+CONTROL_CONDITIONS = ("both_shuffled", "both_permuted", "both_noisy", "state_only", "primitives")
 PAIRED_METRICS = (
     "final_object_correct",
     "final_action_correct",
@@ -61,10 +82,14 @@ PAIRED_METRICS = (
     "final_all_correct",
     "final_words",
     "final_hits_per_word",
-    "seg_points",
-    "seg_f1_tol1",
-    "seg_edit",
+    # segmentation at the out-of-sample (leave-one-episode-out) threshold; lifts are over random chance
+    "seg_loo_points",
+    "seg_loo_f1_tol1",
+    "seg_loo_f1_tol1_lift",
+    "seg_loo_edit_lift",
+    "seg_loo_f1_at_25_lift",
 )
+DEFAULT_GROUP_SIZE = 5
 MISSING_POLICY = (
     "A frame caption with status 'missing', an empty text, or no entry in the transcript is a gap: the trace "
     "keeps its place and every pair touching it is NaN, which never makes a boundary. A missing final or scene "
@@ -89,6 +114,7 @@ class ScoreTables:
     meta: dict
     timing: dict = field(default_factory=dict)
     judge: dict | None = None  # only when a judge backend was given
+    verdicts: dict = field(default_factory=dict)  # claims, verdicts per model and hypothesis, sanity warnings
 
 
 # ---------------------------------------------------------------------------------------------- inputs
@@ -298,6 +324,7 @@ def score_run(
     encoder=None,
     *,
     embedding_cache: str | Path | None = None,
+    chance_cache: str | Path | None = None,
     threshold: float = DEFAULT_THRESHOLD,
     thresholds: Sequence[float] = THRESHOLDS,
     comparisons: Sequence[tuple[str, str]] | None = None,
@@ -309,17 +336,20 @@ def score_run(
     judge=None,
     sidecars: Sequence[str | Path] | None = None,
     progress: bool = False,
+    claims: str | Path | None = None,
 ) -> ScoreTables:
     """Score every transcript of a run and (by default) write RUN_DIR/scores/.
 
     ``encoder`` is an ``embeddings.EncoderSpec`` (default: the packaged all-MiniLM-L6-v2); embeddings are cached
     in ``embedding_cache`` (default <cache root>/embeddings, shared by every run: its entries are keyed
-    by encoder and text), so re-scoring a run needs no torch. ``judge`` (off by
+    by encoder and text), so re-scoring a run needs no torch. Chance baselines are cached in ``chance_cache``
+    (default: next to the embedding cache, ``<cache root>/chance``). ``judge`` (off by
     default) is any vlmproprio Backend that also grades the final captions; its agreement with the rubric
     goes to scores/judge.json. Frame-caption vectors are read first from ``sidecars`` (default: the
     ``<fixtures>/responses/<model>.embeddings.npz`` of the run's models; ``()``: none), so a replayed
     cassette is scored without loading the encoder. ``progress`` shows a bar over the stages (load, embed,
-    score, statistics, write)."""
+    score, statistics, write). ``claims`` is the file of pre-registered primary hypotheses (default: the
+    packaged vlmproprio/claims.yml); their verdicts and the sanity warnings go to scores/verdicts.json."""
     from tqdm import tqdm
 
     from vlmproprio.embeddings import (
@@ -333,6 +363,7 @@ def score_run(
 
     bar = tqdm(total=5, desc="score: loading", unit="stage", disable=not progress or None, leave=False)
     t_start = time.perf_counter()
+    claim_set = load_claims(claims)
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise ScoreRunError(f"{run_dir}: run directory not found")
@@ -374,6 +405,8 @@ def score_run(
     bar.set_description("score: rubric and segmentation")
 
     rows, sweep_rows, audit, traces = [], [], {}, {}
+    cell_sweeps: dict[tuple[str, str, str], list[dict]] = {}
+    outputs: dict[str, ModelOutputs] = {}
     lexicons = {}
     finals: list[tuple[str, CaptionScore, str, Episode, str]] = []
     for t in transcripts:
@@ -389,7 +422,9 @@ def score_run(
         texts, statuses = aligned[(t.model, t.episode_id, t.condition)]
         trace = cosine_trace([vectors[x] if s != "missing" else None for x, s in zip(texts, statuses, strict=True)])
         labels = ep.frame_phases
-        at = evaluate_segmentation(trace, labels, threshold)
+        points = sweep(trace, labels, (*thresholds, threshold))
+        at = points[-1]
+        cell_sweeps[(t.model, t.episode_id, t.condition)] = [sp.flat() for sp in points[:-1]]
         row = {
             "model": t.model,
             "episode_id": t.episode_id,
@@ -412,10 +447,16 @@ def score_run(
             **_trace_stats(trace),
         }
         rows.append(row)
-        for sp in sweep(trace, labels, thresholds):
+        for sp in cell_sweeps[(t.model, t.episode_id, t.condition)]:
             sweep_rows.append(
-                {"model": t.model, "episode_id": t.episode_id, "task": ep.task, "condition": t.condition} | sp.flat()
+                {"model": t.model, "episode_id": t.episode_id, "task": ep.task, "condition": t.condition} | sp
             )
+        o = outputs.setdefault(t.model, ModelOutputs())
+        o.frames_missing += statuses.count("missing")
+        present = [x for x, st in zip(texts, statuses, strict=True) if st != "missing"]
+        o.frame_captions.extend(present)
+        o.all_captions.extend([*present, *scene_texts, final_text])
+        o.final_hits.append(final.hits)
         audit[key] = {
             "expectation": exp.to_dict(),
             "final": _caption_audit(t.final, t.final_status, final),
@@ -432,6 +473,19 @@ def score_run(
             "true_phases": labels,
         }
     t_scored = time.perf_counter()
+    group_size = _group_size(manifest)
+    truths = {e: truth_of(ep.frame_phases) for e, ep in episodes.items()}
+    add_out_of_sample(rows, cell_sweeps, thresholds)
+    chance_dir = Path(chance_cache) if chance_cache is not None else cache_dir.parent / "chance"
+    with ChanceTable(chance_dir) as chance:
+        add_chance(rows, truths, chance, group_size)
+    for r in rows:
+        tr = traces[f"{r['model']}/{r['episode_id']}__{r['condition']}"]
+        tr["loo_threshold"] = r["seg_loo_threshold"]
+        thr = r["seg_loo_threshold"]
+        tr["loo_boundaries"] = boundaries_at(np.array(tr["trace"], dtype=np.float64), thr) if thr is not None else []
+        outputs[r["model"]].cells.append((r["n_frames"], tr["loo_boundaries"]))
+    t_chance = time.perf_counter()
     bar.update()
     bar.set_description("score: paired statistics")
 
@@ -440,12 +494,20 @@ def score_run(
     skip = (*ID_COLUMNS, "seg_threshold", "threshold")
     aggregate = _group_means(rows, ("model", "task", "condition"), skip, add_all_task=True)
     sweep_aggregate = _group_means(sweep_rows, ("model", "task", "condition", "threshold"), skip, add_all_task=True)
-    _add_best_threshold(aggregate, sweep_aggregate)
     aggregate = _sort_rows(aggregate, episode_order, conds)
     sweep_aggregate = _sort_rows(sweep_aggregate, episode_order, conds)
+    controls = control_correlations(root, episodes, conds)
     comps = list(comparisons) if comparisons is not None else default_comparisons(conds)
     # already in a meaningful order: model, task, comparison (as listed), metric (as listed)
     paired = paired_table(rows, comps, n_boot=n_boot, n_perm=n_perm, seed=seed)
+    mark_families(paired, claim_set)
+    models = sorted({t.model for t in transcripts})
+    verdict_doc = {
+        "claims": claim_set.to_dict(),
+        "verdicts": verdicts(paired, claim_set, models),
+        "warnings": sanity_warnings({m: outputs[m] for m in models}, group_size),
+        "group_size": group_size,
+    }
     t_stats = time.perf_counter()
     bar.update()
     bar.set_description("score: writing")
@@ -464,9 +526,22 @@ def score_run(
             "default_threshold": threshold,
             "thresholds": list(thresholds),
             "tolerances": list(TOLERANCES),
+            "iou_thresholds": list(IOU_THRESHOLDS),
+            "out_of_sample": LOO_RULE,
+            "chance": {
+                "metrics": list(CHANCE_METRICS),
+                "random": "same number of points at uniformly random positions: exact when at most "
+                f"{CHANCE_DRAWS} sets are possible, else the mean of {CHANCE_DRAWS} draws (seed {CHANCE_SEED})",
+                "even": "the same number of points evenly spaced",
+                "groups": f"points at the edges of the pipeline's frame groups (k = {group_size})",
+                "lift": "score - random chance",
+                "group_size": group_size,
+                "exact_share": chance.exact_share(),
+            },
             "boundary": "segmentation point j where cos(caption j, caption j+1) < threshold",
             "missing_frames": MISSING_POLICY,
         },
+        "controls": controls,
         "stats": {
             "comparisons": [list(c) for c in comps],
             "metrics": list(PAIRED_METRICS),
@@ -475,20 +550,26 @@ def score_run(
             "seed": seed,
             "ci": "percentile bootstrap 95%",
             "p_value": "two-sided sign-flip permutation (exact up to 16 pairs)",
+            "multiplicity": "primary hypotheses (scores/verdicts.json): Holm per model; every other paired test: "
+            "exploratory, Benjamini-Hochberg q-value per model",
         },
     }
     timing = {
         "load_s": t_loaded - t_start,
         "embed_s": t_embedded - t_loaded,
         "score_segment_s": t_scored - t_embedded,
-        "stats_s": t_stats - t_scored,
+        "chance_s": t_chance - t_scored,
+        "chance": {"computed": chance.computed, "cached": chance.cached},
+        "stats_s": t_stats - t_chance,
         "embeddings": embedder.stats.to_dict(),
     }
     judged = None
     if judge is not None:
         judged = judge_table(judge, finals)
         timing["judge_s"] = time.perf_counter() - t_stats
-    tables = ScoreTables(rows, aggregate, sweep_rows, sweep_aggregate, paired, audit, traces, meta, timing, judged)
+    tables = ScoreTables(
+        rows, aggregate, sweep_rows, sweep_aggregate, paired, audit, traces, meta, timing, judged, verdict_doc
+    )
     if write:
         write_score_tables(run_dir, tables)
     bar.update()
@@ -510,17 +591,178 @@ def judge_table(backend, finals: list[tuple[str, CaptionScore, str, Episode, str
     }
 
 
-def _add_best_threshold(aggregate: list[dict], sweep_aggregate: list[dict]) -> None:
-    best: dict[tuple, dict] = {}
-    for r in sweep_aggregate:
-        k = (r["model"], r["task"], r["condition"])
-        f1 = r.get("f1_tol1")
-        if f1 is not None and (k not in best or f1 > best[k]["f1_tol1"]):
-            best[k] = r
-    for a in aggregate:
-        b = best.get((a["model"], a["task"], a["condition"]))
-        a["seg_best_threshold"] = b["threshold"] if b else None
-        a["seg_best_f1_tol1"] = b["f1_tol1"] if b else None
+def control_correlations(root: Path, episodes: dict[str, Episode], conditions: Sequence[str]) -> dict:
+    """Per condition with numeric state (controls and the paper's own-state conditions alike), per task and
+    state dimension: the mean, min and max over episodes of the Pearson r between the numbers the prompts
+    showed and the episode's true states (conditions.state_correlations) -- how much a control still tells."""
+    from vlmproprio.conditions import STATE_DIMENSIONS, get_condition, state_correlations
+
+    known = [c for c in conditions if c in (*STATE_CONDITIONS, *CONTROL_CONDITIONS)]
+    numeric = [get_condition(c) for c in known if get_condition(c).numeric_state]
+    if not numeric:
+        return {}
+    peers = list(episodes.values())
+    if any(c.source in ("shuffled", "permuted") for c in numeric):
+        # partners come from every episode of the fixtures, as in the run (runner.run)
+        loaded = set(episodes)
+        peers += [e for e in load_episodes(root, verify=False) if e.episode_id not in loaded]
+    out: dict = {}
+    for cond in numeric:
+        per_task: dict[str, dict[str, list[float]]] = {}
+        for ep in sorted(episodes.values(), key=lambda e: e.episode_id):
+            rs = state_correlations(ep, cond, peers)
+            for task in (ep.task, "all"):
+                for dim, r in rs.items():
+                    if r is not None:
+                        per_task.setdefault(task, {}).setdefault(dim, []).append(r)
+        out[cond.name] = {
+            task: {
+                dim: {"mean_r": math.fsum(v) / len(v), "min_r": min(v), "max_r": max(v), "n": len(v)}
+                for dim in STATE_DIMENSIONS
+                if (v := dims.get(dim))
+            }
+            for task, dims in per_task.items()
+        }
+    return out
+
+
+LOO_RULE = (
+    "leave one episode out: for each episode, the threshold with the highest mean boundary F1 (+-1 frame) over "
+    "the other episodes of the same task, model and condition (ties: the lowest threshold), applied to it"
+)
+
+
+def _group_size(manifest: dict) -> int:
+    """The pipeline's frame-group size k from run.json (every model of a run must agree; default 5)."""
+    sizes = {
+        m.get("pipeline", {}).get("k")
+        for m in manifest.get("models", [])
+        if isinstance(m, dict) and isinstance(m.get("pipeline"), dict)
+    }
+    sizes.discard(None)
+    if len(sizes) > 1:
+        raise ScoreRunError(f"run.json: models use different frame-group sizes {sorted(sizes)}; score them apart")
+    return int(next(iter(sizes))) if sizes else DEFAULT_GROUP_SIZE
+
+
+def loo_thresholds(cell_sweeps: dict[tuple[str, str, str], list[dict]], tasks: dict[str, str]) -> dict:
+    """(model, episode, condition) -> the threshold chosen on the other episodes of its task (LOO_RULE); None
+    when the task has no other episode."""
+    groups: dict[tuple[str, str, str], list[str]] = {}
+    for model, episode, condition in cell_sweeps:
+        groups.setdefault((model, tasks[episode], condition), []).append(episode)
+    out = {}
+    for (model, _task, condition), members in groups.items():
+        for held_out in members:
+            others = [cell_sweeps[(model, e, condition)] for e in members if e != held_out]
+            if not others:
+                out[(model, held_out, condition)] = None
+                continue
+            best_thr, best_f1 = None, -1.0
+            for i, point in enumerate(others[0]):
+                f1 = math.fsum(o[i]["f1_tol1"] for o in others) / len(others)
+                if f1 > best_f1:
+                    best_thr, best_f1 = point["threshold"], f1
+            out[(model, held_out, condition)] = best_thr
+    return out
+
+
+SEG_COLUMNS = ("points", "p_tol0", "r_tol0", "f1_tol0", "p_tol1", "r_tol1", "f1_tol1", "p_tol2", "r_tol2", "f1_tol2")
+
+
+def add_out_of_sample(rows: list[dict], cell_sweeps: dict, thresholds: Sequence[float]) -> None:
+    """Add ``seg_loo_threshold`` and every sweep metric at it as ``seg_loo_*`` to each row."""
+    chosen = loo_thresholds(cell_sweeps, {r["episode_id"]: r["task"] for r in rows})
+    for r in rows:
+        cell = (r["model"], r["episode_id"], r["condition"])
+        thr = chosen[cell]
+        r["seg_loo_threshold"] = thr
+        point = next((p for p in cell_sweeps[cell] if p["threshold"] == thr), None)
+        for k, v in (point or {}).items():
+            if k != "threshold":
+                r[f"seg_loo_{k}"] = v
+
+
+CHANCE_CACHE_VERSION = 1
+
+
+class ChanceTable:
+    """Random-chance scores by (episode ground truth, number of points).
+
+    They depend on neither the model nor the run, so they are kept on disk (``<cache root>/chance``, diskcache,
+    keyed by the labels, the count, the number of draws, the seed and this code's version) as well as in
+    memory: a second scoring of any run reads them instead of drawing 10 000 sets again."""
+
+    def __init__(self, directory: str | Path | None = None) -> None:
+        self._random: dict[tuple, dict[str, float]] = {}
+        self._exact: dict[tuple, bool] = {}
+        self._dir = Path(directory) if directory is not None else None
+        self._disk = None
+        self.computed = 0
+        self.cached = 0
+
+    def __enter__(self) -> ChanceTable:
+        if self._dir is not None:
+            import diskcache
+
+            try:
+                self._disk = diskcache.Cache(str(self._dir))
+            except Exception as exc:  # any failure to open it (a file in the way, a locked or broken database)
+                raise ScoreRunError(f"{self._dir}: cannot open the chance-baseline cache ({exc})") from exc
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self._disk is not None:
+            self._disk.close()
+            self._disk = None
+
+    def random(self, truth: Truth, k: int) -> dict[str, float]:
+        key = (truth.labels, k)
+        if key not in self._random:
+            disk_key = json.dumps(
+                [CHANCE_CACHE_VERSION, list(truth.labels), k, CHANCE_DRAWS, CHANCE_SEED, list(CHANCE_METRICS)]
+            )
+            value = self._disk.get(disk_key) if self._disk is not None else None
+            if value is None:
+                value = chance_random(truth, k)
+                self.computed += 1
+                if self._disk is not None:
+                    self._disk.set(disk_key, value)
+            else:
+                self.cached += 1
+            self._random[key] = value
+            self._exact[key] = math.comb(truth.n_frames - 1, k) <= CHANCE_DRAWS
+        return self._random[key]
+
+    def exact_share(self) -> float | None:
+        return sum(self._exact.values()) / len(self._exact) if self._exact else None
+
+
+def _chance_columns(prefix: str, row: dict, truth: Truth, chance: ChanceTable) -> None:
+    k = row.get(f"{prefix}points")
+    if k is None:
+        return
+    rand = chance.random(truth, int(k))
+    even = score_points(evenly_spaced(truth.n_frames, int(k)), truth)
+    for m in CHANCE_METRICS:
+        row[f"{prefix}{m}_chance"] = rand[m]
+        row[f"{prefix}{m}_lift"] = row[f"{prefix}{m}"] - rand[m]
+        row[f"{prefix}{m}_even"] = even[m]
+
+
+def add_chance(rows: list[dict], truths: dict[str, Truth], chance: ChanceTable, group_size: int) -> None:
+    """Chance baselines and lifts for the fixed-threshold (``seg_``) and out-of-sample (``seg_loo_``) scores,
+    and the score of boundaries at the frame-group edges (``seg_groups_``)."""
+    groups: dict[str, dict[str, float]] = {}
+    for r in rows:
+        truth = truths[r["episode_id"]]
+        _chance_columns("seg_", r, truth, chance)
+        _chance_columns("seg_loo_", r, truth, chance)
+        if r["episode_id"] not in groups:
+            edges = group_edges(truth.n_frames, group_size)
+            groups[r["episode_id"]] = {"points": float(len(edges))} | score_points(edges, truth)
+        for m, v in groups[r["episode_id"]].items():
+            r[f"seg_groups_{m}"] = v
 
 
 # ---------------------------------------------------------------------------------------------- writing
@@ -568,6 +810,7 @@ def write_score_tables(run_dir: str | Path, tables: ScoreTables) -> list[Path]:
         "audit.json": dumps_json(tables.audit),
         "traces.json": dumps_json(tables.traces),
         "meta.json": dumps_json(tables.meta),
+        "verdicts.json": dumps_json(tables.verdicts),
         "timing.json": dumps_json(tables.timing),
     }
     if tables.judge is not None:

@@ -24,7 +24,8 @@ MODEL_HELP = (
     "(see `vlmproprio models`)"
 )
 CONDITIONS_HELP = (
-    "comma list (or repeated) of none, ee, joint, both, both_shuffled, both_noisy, state_only, primitives; "
+    "comma list (or repeated) of none, ee, joint, both, both_shuffled, both_permuted, both_noisy, state_only, "
+    "primitives; "
     "or the groups paper, controls, all (default: all)"
 )
 EPISODES_HELP = "episode ids, a comma list or repeated (default: every episode of the fixtures)"

@@ -13,15 +13,35 @@
   ``math.fsum`` (an exactly rounded sum), so a trace has the same bits on every
   machine and numpy build, given the cached embeddings.
 
-Against ground truth: boundary precision / recall / F1 with a tolerance of
-``tol`` frames (one-to-one matching), and the MS-TCN edit score over segment
-sequences, where each predicted segment is labelled with the ground-truth phase
-that covers most of its frames (ties: the earliest frame's phase) and adjacent
-predicted segments are *not* merged, so over-segmentation costs insertions.
+Against ground truth (every definition, with its reference, is in docs/metrics.md):
+
+* boundary precision / recall / F1 with a tolerance of ``tol`` frames and one-to-one matching, as in
+  generic event boundary detection (GEBD; Shou et al., ICCV 2021), with an absolute tolerance in frames
+  instead of GEBD's relative distance;
+* frame-wise labels from the predicted segments: each predicted segment takes the ground-truth phase that
+  covers most of its frames (ties: the phase that comes first in the episode) -- an oracle labelling, since
+  the captions carry no phase names;
+* on those frame-wise labels, the standard metrics of temporal action segmentation exactly as MS-TCN's
+  evaluation computes them (Farha & Gall, CVPR 2019; ``eval.py`` of the MS-TCN and ASFormer code): the
+  segmental edit score (adjacent equal labels merged, ``(1 - Levenshtein / max length) * 100``) and the
+  segmental F1@{10, 25, 50} (a predicted segment is a true positive when its IoU with the not yet matched
+  ground-truth segment of the same label that overlaps it most is >= the threshold), per episode; and
+  frame accuracy;
+* ``edit_score_unmerged``: the earlier score of this project, kept under an honest name -- majority-labelled
+  predicted segments *not* merged, so over-segmentation costs insertions (MS-TCN's edit score forgives it);
+* chance baselines (``chance_scores``): the expected score of random boundaries with the same count
+  (``CHANCE_DRAWS`` seeded draws), of evenly spaced boundaries of that count, and of boundaries at the
+  edges of the pipeline's frame groups.
+
+``score_masks`` computes every metric for many boundary sets at once (numpy, no Python loop over the sets);
+the sweep, the chance baselines and single predictions all go through it, and tests/test_segmentation_metrics.py
+checks it against a straightforward implementation on thousands of random cases.
 """
 
 from __future__ import annotations
 
+import functools
+import itertools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
@@ -149,7 +169,8 @@ def segments_from_labels(labels: Sequence[str]) -> list[str]:
 
 
 def predicted_segment_labels(boundaries: Sequence[int], true_labels: Sequence[str]) -> list[str]:
-    """Label each predicted segment with the ground-truth phase covering most of its frames (not merged)."""
+    """Label each predicted segment with the ground-truth phase covering most of its frames (ties: the
+    earliest frame's phase), one label per predicted segment, *not* merged (for ``edit_score_unmerged``)."""
     n = len(true_labels)
     cuts = sorted({b + 1 for b in boundaries if 0 <= b < n - 1})
     starts = [0, *cuts]
@@ -176,14 +197,344 @@ def levenshtein(a: Sequence[str], b: Sequence[str]) -> int:
 
 
 def edit_score(pred_segments: Sequence[str], true_segments: Sequence[str]) -> float:
-    """MS-TCN edit score in [0, 100]: (1 - Levenshtein / max length) * 100 over segment label sequences."""
+    """Edit score in [0, 100] of two segment label sequences: (1 - Levenshtein / max length) * 100 (MS-TCN's
+    ``edit_score``, Farha & Gall 2019, given sequences that are already merged)."""
     m = max(len(pred_segments), len(true_segments))
     if m == 0:
         return 100.0
     return (1.0 - levenshtein(pred_segments, true_segments) / m) * 100.0
 
 
+# ---------------------------------------------------------------------------------------------- many at once
+
+IOU_THRESHOLDS: tuple[float, ...] = (0.10, 0.25, 0.50)
+# metrics that get chance baselines and a lift (score - chance); every one is "higher is better"
+CHANCE_METRICS: tuple[str, ...] = ("f1_tol1", "edit", "f1_at_10", "f1_at_25", "f1_at_50", "frame_acc")
+CHANCE_DRAWS = 10000
+CHANCE_SEED = 20261201
+
+
+def iou_key(tau: float) -> str:
+    """'f1_at_10' for IoU threshold 0.10 (MS-TCN's F1@10)."""
+    return f"f1_at_{round(tau * 100):02d}"
+
+
+@dataclass(frozen=True)
+class Truth:
+    """One episode's ground truth as ``score_masks`` needs it.
+
+    ``codes`` numbers the phases by first appearance in the episode; the merged ground-truth segments are
+    ``(seg_label[s], seg_start[s], seg_end[s])`` with exclusive ends, as MS-TCN's
+    ``get_labels_start_end_time`` returns them."""
+
+    labels: tuple[str, ...]
+    codes: np.ndarray
+    n_labels: int
+    boundaries: np.ndarray
+    seg_label: np.ndarray
+    seg_start: np.ndarray
+    seg_end: np.ndarray
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.labels)
+
+    @property
+    def ordered(self) -> bool:
+        """Every phase is one run (as in the fixtures): then majority labels of consecutive predicted
+        segments never go back, which allows the closed forms in ``score_masks``."""
+        return len(self.seg_label) == self.n_labels
+
+
+def truth_of(labels: Sequence[str]) -> Truth:
+    if not labels:
+        raise ValueError("an episode without frames has no segmentation")
+    order: dict[str, int] = {}
+    for lab in labels:
+        order.setdefault(lab, len(order))
+    codes = np.array([order[lab] for lab in labels], dtype=np.int64)
+    n = len(labels)
+    bounds = np.array([j for j in range(n - 1) if codes[j] != codes[j + 1]], dtype=np.int64)
+    starts = np.array([0, *(bounds + 1)], dtype=np.int64)
+    ends = np.array([*(bounds + 1), n], dtype=np.int64)
+    return Truth(tuple(labels), codes, len(order), bounds, codes[starts], starts, ends)
+
+
+def _matched_boundaries(pos: np.ndarray, k: np.ndarray, truth: np.ndarray, tol: int) -> np.ndarray:
+    """Per row, the size of the one-to-one matching of predicted and true boundaries within ``tol``: predicted
+    positions in ascending order, each takes the earliest unmatched true boundary in reach (as
+    ``boundary_prf``, a maximum matching). ``pos`` is sorted per row; entries from column ``k[d]`` on are
+    padding."""
+    d = pos.shape[0]
+    used = np.zeros((d, len(truth)), dtype=bool)
+    if len(truth) == 0:
+        return np.zeros(d, dtype=np.int64)
+    rows = np.arange(d)
+    for c in range(pos.shape[1]):
+        cand = ~used & (np.abs(truth[None, :] - pos[:, c : c + 1]) <= tol) & (c < k)[:, None]
+        has = cand.any(axis=1)
+        first = cand.argmax(axis=1)
+        used[rows[has], first[has]] = True
+    return used.sum(axis=1)
+
+
+def _prf_arrays(tp: np.ndarray, k: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Precision, recall, F1 with ``boundary_prf``'s conventions for empty sets, elementwise."""
+    precision = np.where(k > 0, tp / np.maximum(k, 1), 1.0 if m == 0 else 0.0)
+    recall = tp / m if m else np.where(k == 0, 1.0, 0.0)
+    denom = precision + recall
+    f1 = np.where(denom > 0, 2 * precision * recall / np.where(denom > 0, denom, 1.0), 0.0)
+    return precision, recall, f1
+
+
+def score_masks(
+    masks: np.ndarray,
+    truth: Truth,
+    tolerances: Sequence[int] = TOLERANCES,
+    ious: Sequence[float] = IOU_THRESHOLDS,
+) -> dict[str, np.ndarray]:
+    """Every segmentation metric for D boundary sets at once.
+
+    ``masks`` is boolean (D, n - 1): ``masks[d, j]`` says a segment ends after frame j. Returns arrays of
+    length D: ``points``, ``tp_tol{t}`` (matched boundaries), ``p_tol{t}`` / ``r_tol{t}`` / ``f1_tol{t}``
+    (boundary P/R/F1, ``boundary_prf``), ``frame_acc`` (share of frames whose label is right), ``edit``
+    (MS-TCN segmental edit score, 0-100, on the frame-wise labels with adjacent equal labels merged) and
+    ``f1_at_{10,25,50}`` (MS-TCN segmental F1 at IoU 0.10 / 0.25 / 0.50, one episode, 0-1).
+
+    Frame-wise labels: each predicted segment takes the phase covering most of its frames; ties go to the
+    phase that comes first in the episode. The work is done per predicted segment (prefix counts of the
+    phases), not per frame, so 10 000 sets of a few boundaries cost milliseconds. See docs/metrics.md."""
+    masks = np.asarray(masks, dtype=bool)
+    n = truth.n_frames
+    if masks.ndim != 2 or masks.shape[1] != n - 1:
+        raise ValueError(f"boundary masks of shape {masks.shape} for {n} frames (expected (D, {n - 1}))")
+    d = masks.shape[0]
+    k = masks.sum(axis=1)
+    kmax = int(k.max()) if d else 0
+    pos = np.full((d, kmax), n - 1, dtype=np.int64)
+    di, jj = np.nonzero(masks)  # row-major: ascending positions within a row
+    pos[di, np.cumsum(masks, axis=1)[di, jj] - 1] = jj
+    return score_positions(pos, k, truth, tolerances, ious)
+
+
+def score_positions(
+    pos: np.ndarray,
+    k: np.ndarray,
+    truth: Truth,
+    tolerances: Sequence[int] = TOLERANCES,
+    ious: Sequence[float] = IOU_THRESHOLDS,
+) -> dict[str, np.ndarray]:
+    """``score_masks`` for boundary sets given as positions: ``pos`` (D, K) ascending per row, row d using
+    its first ``k[d]`` entries; the rest must be ``n - 1`` (padding)."""
+    n = truth.n_frames
+    d = pos.shape[0]
+    out: dict[str, np.ndarray] = {"points": k}
+    m = len(truth.boundaries)
+    for tol in tolerances:
+        tp = _matched_boundaries(pos, k, truth.boundaries, tol)
+        p, r, f = _prf_arrays(tp, k, m)
+        out[f"tp_tol{tol}"] = tp
+        out[f"p_tol{tol}"], out[f"r_tol{tol}"], out[f"f1_tol{tol}"] = p, r, f
+
+    # predicted segments: starts 0, pos + 1; ends pos + 1, n (padding gives start = end = n)
+    n_raw = pos.shape[1] + 1
+    rstart = np.concatenate([np.zeros((d, 1), dtype=np.int64), pos + 1], axis=1)
+    rend = np.concatenate([pos + 1, np.full((d, 1), n, dtype=np.int64)], axis=1)
+    valid = np.arange(n_raw)[None, :] <= k[:, None]
+    # phase counts per segment from prefix counts; the first maximum is the lowest code, the earliest phase
+    prefix = np.zeros((n + 1, truth.n_labels), dtype=np.int64)
+    prefix[np.arange(1, n + 1), truth.codes] = 1
+    prefix = np.cumsum(prefix, axis=0)
+    counts = prefix[rend] - prefix[rstart]
+    major = counts.argmax(axis=2)
+    right = np.take_along_axis(counts, major[:, :, None], axis=2)[:, :, 0]
+    out["frame_acc"] = np.where(valid, right, 0).sum(axis=1) / n
+
+    # merged segments: runs of equal labels among consecutive predicted segments
+    new = np.ones((d, n_raw), dtype=bool)
+    new[:, 1:] = major[:, 1:] != major[:, :-1]
+    new &= valid
+    merged = np.cumsum(new, axis=1) - 1
+    nseg = new.sum(axis=1)
+    nmax = int(nseg.max()) if d else 0
+    plab = np.full((d, max(nmax, 1)), -1, dtype=np.int64)
+    pstart = np.full((d, max(nmax, 1)), n, dtype=np.int64)
+    pend = np.full((d, max(nmax, 1)), n, dtype=np.int64)
+    di, si = np.nonzero(new)
+    plab[di, merged[di, si]] = major[di, si]
+    pstart[di, merged[di, si]] = rstart[di, si]
+    # a predicted segment closes its merged run when it is the last one or the next one starts a new run
+    next_new = np.zeros((d, n_raw), dtype=bool)
+    next_new[:, :-1] = new[:, 1:]
+    closes = valid & (next_new | (np.arange(n_raw)[None, :] == k[:, None]))
+    di, si = np.nonzero(closes)
+    pend[di, merged[di, si]] = rend[di, si]
+
+    if truth.ordered:
+        _segmental_ordered(out, plab, pstart, pend, nseg, truth, ious)
+    else:
+        _segmental_general(out, plab, pstart, pend, nseg, nmax, truth, ious)
+    return out
+
+
+def _f1(tp: np.ndarray, fp: np.ndarray, fn: np.ndarray) -> np.ndarray:
+    precision = tp / (tp + fp)
+    recall = tp / (tp + fn)
+    denom = precision + recall
+    return np.where(denom > 0, 2 * precision * recall / np.where(denom > 0, denom, 1.0), 0.0)
+
+
+def _segmental_ordered(out, plab, pstart, pend, nseg, truth: Truth, ious) -> None:
+    """Edit and F1@IoU when every phase is one run (``Truth.ordered``). The merged predicted labels are then
+    a strictly increasing subsequence of the true segment sequence 0..M-1, so the Levenshtein distance is
+    M - nseg (deletions only) and each predicted segment can only match the true segment of its own label,
+    never one hit before: the same numbers as the general algorithm, without its loops."""
+    mm = len(truth.seg_label)
+    out["edit"] = (1.0 - (mm - nseg) / np.maximum(nseg, mm)) * 100.0
+    valid = np.arange(plab.shape[1])[None, :] < nseg[:, None]
+    lab = np.where(valid, plab, 0)
+    ys, ye = truth.seg_start[lab], truth.seg_end[lab]
+    iou = (1.0 * (np.minimum(pend, ye) - np.maximum(pstart, ys))) / (np.maximum(pend, ye) - np.minimum(pstart, ys))
+    for tau in ious:
+        tp = (valid & (iou >= tau)).sum(axis=1)
+        out[iou_key(tau)] = _f1(tp, nseg - tp, mm - tp)
+
+
+def _segmental_general(out, plab, pstart, pend, nseg, nmax, truth: Truth, ious) -> None:
+    """Edit and F1@IoU for any ground truth, following MS-TCN's ``levenstein`` and ``f_score`` row-wise."""
+    d = plab.shape[0]
+    rows = np.arange(d)
+    # segmental edit score: Levenshtein distance between the merged label sequences, row by row
+    ylab = truth.seg_label
+    mm = len(ylab)
+    prev = np.tile(np.arange(mm + 1, dtype=np.int64), (d, 1))
+    dist = np.zeros(d, dtype=np.int64)
+    for i in range(1, nmax + 1):
+        cur = np.empty_like(prev)
+        cur[:, 0] = i
+        lab = plab[:, i - 1]
+        for j in range(1, mm + 1):
+            cur[:, j] = np.minimum(np.minimum(prev[:, j] + 1, cur[:, j - 1] + 1), prev[:, j - 1] + (lab != ylab[j - 1]))
+        done = nseg == i
+        dist[done] = cur[done, mm]
+        prev = cur
+    out["edit"] = (1.0 - dist / np.maximum(nseg, mm)) * 100.0
+
+    # segmental F1@IoU, MS-TCN's f_score: predicted segments in order, each against the ground-truth segment
+    # (same label) it overlaps most; a hit needs IoU >= tau and that segment not hit before
+    hits = {tau: np.zeros((d, mm), dtype=bool) for tau in ious}
+    tps = {tau: np.zeros(d, dtype=np.int64) for tau in ious}
+    fps = {tau: np.zeros(d, dtype=np.int64) for tau in ious}
+    for j in range(nmax):
+        valid = j < nseg
+        ps, pe, pl = pstart[:, j : j + 1], pend[:, j : j + 1], plab[:, j : j + 1]
+        inter = np.minimum(pe, truth.seg_end[None, :]) - np.maximum(ps, truth.seg_start[None, :])
+        union = np.maximum(pe, truth.seg_end[None, :]) - np.minimum(ps, truth.seg_start[None, :])
+        iou = (1.0 * inter / union) * (pl == ylab[None, :])
+        idx = iou.argmax(axis=1)
+        best = iou[rows, idx]
+        for tau in ious:
+            h = hits[tau]
+            ok = valid & (best >= tau) & ~h[rows, idx]
+            tps[tau] += ok
+            fps[tau] += valid & ~ok
+            h[rows[ok], idx[ok]] = True
+    for tau in ious:
+        tp = tps[tau]
+        fn = mm - hits[tau].sum(axis=1)
+        out[iou_key(tau)] = _f1(tp, fps[tau], fn)
+
+
+def masks_of(boundary_sets: Sequence[Sequence[int]], n_frames: int) -> np.ndarray:
+    """Boolean (D, n_frames - 1) masks from lists of segmentation points."""
+    out = np.zeros((len(boundary_sets), max(n_frames - 1, 0)), dtype=bool)
+    for i, b in enumerate(boundary_sets):
+        for j in b:
+            if not 0 <= j < n_frames - 1:
+                raise ValueError(f"segmentation point {j} outside 0..{n_frames - 2}")
+            out[i, j] = True
+    return out
+
+
+# ---------------------------------------------------------------------------------------------- chance
+
+
+def evenly_spaced(n_frames: int, k: int) -> list[int]:
+    """k segmentation points cutting n frames into k + 1 segments as equal as possible (rounded half up)."""
+    if not 0 <= k <= n_frames - 1:
+        raise ValueError(f"{k} segmentation points do not fit {n_frames} frames")
+    return [(2 * i * n_frames + k + 1) // (2 * (k + 1)) - 1 for i in range(1, k + 1)]
+
+
+def group_edges(n_frames: int, group: int) -> list[int]:
+    """Segmentation points at the edges of the pipeline's frame groups (frames 0..group-1, group.., ...)."""
+    if group < 1:
+        raise ValueError(f"group size must be >= 1, got {group}")
+    return [j for j in range(group - 1, n_frames - 1, group)]
+
+
+@functools.lru_cache(maxsize=16)
+def random_orders(n_positions: int, draws: int, seed: int) -> np.ndarray:
+    """``draws`` uniformly random orderings of the n positions (seeded); read-only.
+
+    The first k positions of a uniformly random ordering are a uniform k-subset, so one set of orderings
+    serves every count k of an episode length (the estimates for different k share their draws)."""
+    rng = np.random.Generator(np.random.PCG64([seed, n_positions]))
+    order = np.argsort(rng.random((draws, n_positions)), axis=1, kind="stable")
+    order.flags.writeable = False
+    return order
+
+
+def random_positions(n_positions: int, k: int, draws: int, seed: int) -> np.ndarray:
+    """``draws`` uniform k-subsets of the n positions, ascending per row."""
+    return np.sort(random_orders(n_positions, draws, seed)[:, :k], axis=1)
+
+
+def random_masks(n_positions: int, k: int, draws: int, seed: int) -> np.ndarray:
+    """``random_positions`` as boolean masks."""
+    out = np.zeros((draws, n_positions), dtype=bool)
+    if k:
+        np.put_along_axis(out, random_positions(n_positions, k, draws, seed), True, axis=1)
+    return out
+
+
+def chance_random(
+    truth: Truth, k: int, metrics: Sequence[str] = CHANCE_METRICS, draws: int = CHANCE_DRAWS, seed: int = CHANCE_SEED
+) -> dict[str, float]:
+    """Expected score of k segmentation points placed uniformly at random among the n - 1 positions.
+
+    Exact when there are at most ``draws`` possible sets (all of them are scored: every k-subset is equally
+    likely); otherwise the mean over ``draws`` seeded draws. Sums are exact (``math.fsum``)."""
+    n_pos = truth.n_frames - 1
+    if not 0 <= k <= n_pos:
+        raise ValueError(f"{k} segmentation points do not fit {truth.n_frames} frames")
+    if math.comb(n_pos, k) <= draws:
+        combos = itertools.chain.from_iterable(itertools.combinations(range(n_pos), k))
+        pos = np.fromiter(combos, np.int64, count=math.comb(n_pos, k) * k).reshape(math.comb(n_pos, k), k)
+    else:
+        pos = random_positions(n_pos, k, draws, seed)
+    tols = sorted({int(m.removeprefix("f1_tol")) for m in metrics if m.startswith("f1_tol")})
+    scores = score_positions(pos, np.full(len(pos), k, dtype=np.int64), truth, tols)
+    return {m: math.fsum(scores[m].tolist()) / len(pos) for m in metrics}
+
+
+def chance_is_exact(n_frames: int, k: int, draws: int = CHANCE_DRAWS) -> bool:
+    return math.comb(max(n_frames - 1, 0), k) <= draws
+
+
+def score_points(points: Sequence[int], truth: Truth, metrics: Sequence[str] = CHANCE_METRICS) -> dict[str, float]:
+    """The metrics of one set of segmentation points."""
+    scores = score_masks(masks_of([points], truth.n_frames), truth)
+    return {m: float(scores[m][0]) for m in metrics}
+
+
 # ---------------------------------------------------------------------------------------------- sweep
+
+
+def edit_score_unmerged(boundaries: Sequence[int], true_labels: Sequence[str]) -> float:
+    """This project's earlier "edit" score (not MS-TCN's): majority-labelled predicted segments, *not* merged,
+    against the true segment sequence, so every extra boundary inside a phase costs an insertion."""
+    return edit_score(predicted_segment_labels(boundaries, true_labels), segments_from_labels(true_labels))
 
 
 @dataclass(frozen=True)
@@ -191,7 +542,9 @@ class SweepPoint:
     threshold: float
     points: int
     prf: dict[int, PRF]  # by tolerance
-    edit: float
+    edit: float  # MS-TCN segmental edit score
+    segmental: dict[str, float]  # f1_at_10/25/50, frame_acc
+    edit_unmerged: float
 
     def flat(self) -> dict:
         d: dict = {"threshold": self.threshold, "points": self.points}
@@ -200,7 +553,49 @@ class SweepPoint:
             d[f"r_tol{tol}"] = m.recall
             d[f"f1_tol{tol}"] = m.f1
         d["edit"] = self.edit
+        d.update(self.segmental)
+        d["edit_unmerged"] = self.edit_unmerged
         return d
+
+
+def sweep(
+    trace: np.ndarray,
+    true_labels: Sequence[str],
+    thresholds: Sequence[float] = THRESHOLDS,
+    tolerances: Sequence[int] = TOLERANCES,
+) -> list[SweepPoint]:
+    """Segmentation at each threshold against the ground-truth frame phases (one ``score_masks`` call)."""
+    n = len(true_labels)
+    t = np.asarray(trace, dtype=np.float64)
+    if len(t) != max(n - 1, 0):
+        raise ValueError(f"trace of length {len(t)} for {n} frames (expected {max(n - 1, 0)})")
+    truth = truth_of(true_labels)
+    masks = np.stack([t < thr for thr in thresholds]) if len(thresholds) else np.zeros((0, n - 1), dtype=bool)
+    sc = score_masks(masks, truth, tolerances)
+    m = len(truth.boundaries)
+    out = []
+    unmerged_of: dict[tuple[int, ...], float] = {}  # neighbouring thresholds often give the same points
+    for i, thr in enumerate(thresholds):
+        k = int(sc["points"][i])
+        prf = {
+            tol: PRF(
+                float(sc[f"p_tol{tol}"][i]),
+                float(sc[f"r_tol{tol}"][i]),
+                float(sc[f"f1_tol{tol}"][i]),
+                int(sc[f"tp_tol{tol}"][i]),
+                k,
+                m,
+            )
+            for tol in tolerances
+        }
+        seg = {iou_key(tau): float(sc[iou_key(tau)][i]) for tau in IOU_THRESHOLDS}
+        seg["frame_acc"] = float(sc["frame_acc"][i])
+        pts = tuple(boundaries_at(t, thr))
+        if pts not in unmerged_of:
+            unmerged_of[pts] = edit_score_unmerged(pts, true_labels)
+        unmerged = unmerged_of[pts]
+        out.append(SweepPoint(thr, k, prf, float(sc["edit"][i]), seg, unmerged))
+    return out
 
 
 def evaluate_segmentation(
@@ -210,20 +605,4 @@ def evaluate_segmentation(
     tolerances: Sequence[int] = TOLERANCES,
 ) -> SweepPoint:
     """Segmentation at one threshold against the ground-truth frame phases."""
-    n = len(true_labels)
-    if len(trace) != max(n - 1, 0):
-        raise ValueError(f"trace of length {len(trace)} for {n} frames (expected {max(n - 1, 0)})")
-    truth = [j for j in range(n - 1) if true_labels[j] != true_labels[j + 1]]
-    pred = boundaries_at(trace, threshold)
-    prf = {tol: boundary_prf(pred, truth, tol) for tol in tolerances}
-    edit = edit_score(predicted_segment_labels(pred, true_labels), segments_from_labels(true_labels))
-    return SweepPoint(threshold, len(pred), prf, edit)
-
-
-def sweep(
-    trace: np.ndarray,
-    true_labels: Sequence[str],
-    thresholds: Sequence[float] = THRESHOLDS,
-    tolerances: Sequence[int] = TOLERANCES,
-) -> list[SweepPoint]:
-    return [evaluate_segmentation(trace, true_labels, thr, tolerances) for thr in thresholds]
+    return sweep(trace, true_labels, (threshold,), tolerances)[0]

@@ -132,3 +132,54 @@ def paired_difference(
     lo, hi = bootstrap_ci(d, n_boot, seed, level)
     p, method = sign_flip_p(d, n_perm, seed, max_exact)
     return PairedResult(n, exact_mean(av), exact_mean(bv), exact_mean(d), lo, hi, p, method, n_boot, seed)
+
+
+# ---------------------------------------------------------------------------------------------- multiplicity
+
+
+def holm(p_values: Sequence[float]) -> list[float]:
+    """Holm's step-down adjusted p-values (Holm 1979), controlling the family-wise error rate.
+
+    Sorted ascending p_(1) <= ... <= p_(m): adjusted p_(i) = max over j <= i of min(1, (m - j + 1) p_(j)).
+    A hypothesis is rejected at level alpha exactly when its adjusted p-value is <= alpha. NaN stays NaN and
+    does not count towards m."""
+    return _adjust(p_values, _holm_sorted)
+
+
+def benjamini_hochberg(p_values: Sequence[float]) -> list[float]:
+    """Benjamini-Hochberg q-values (Benjamini & Hochberg 1995), controlling the false discovery rate.
+
+    Sorted ascending: q_(i) = min over j >= i of min(1, m p_(j) / j). NaN stays NaN and does not count."""
+    return _adjust(p_values, _bh_sorted)
+
+
+def _holm_sorted(p: list[float]) -> list[float]:
+    m = len(p)
+    out, running = [], 0.0
+    for i, x in enumerate(p):
+        running = max(running, min(1.0, (m - i) * x))
+        out.append(running)
+    return out
+
+
+def _bh_sorted(p: list[float]) -> list[float]:
+    m = len(p)
+    out = [0.0] * m
+    running = 1.0
+    for i in range(m - 1, -1, -1):
+        running = min(running, min(1.0, m * p[i] / (i + 1)))
+        out[i] = running
+    return out
+
+
+def _adjust(p_values: Sequence[float], method) -> list[float]:
+    vals = [float(p) for p in p_values]
+    finite = [i for i, p in enumerate(vals) if math.isfinite(p)]
+    if any(not 0.0 <= vals[i] <= 1.0 for i in finite):
+        raise ValueError("p-values must lie in [0, 1]")
+    order = sorted(finite, key=lambda i: (vals[i], i))
+    adjusted = method([vals[i] for i in order])
+    out = [float("nan")] * len(vals)
+    for i, a in zip(order, adjusted, strict=True):
+        out[i] = a
+    return out

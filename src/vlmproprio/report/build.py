@@ -19,7 +19,7 @@ from vlmproprio.report.page import (
     write_thumbnail,
 )
 from vlmproprio.report.plots import Plot, save_figure, success_rates_figure, sweep_figure, trace_figure
-from vlmproprio.report.tables import headline_table, markdown_report, report_tables
+from vlmproprio.report.tables import headline_table, markdown_report, report_tables, verdict_table
 from vlmproprio.transcripts import Transcript, read_transcripts
 
 REPORT_DIR = "report"
@@ -129,7 +129,14 @@ def write_plots(
             )
         )
         f = f"f1_threshold__{m}.png"
-        fig = sweep_figure(s, model, "f1_tol1", "boundary F1 (±1 frame)", f"Boundary F1 vs threshold — {model}")
+        fig = sweep_figure(
+            s,
+            model,
+            "f1_tol1",
+            "boundary F1 (±1 frame)",
+            f"Boundary F1 vs threshold — {model} (★ in-sample best: optimistic upper bound)",
+            mark_best=True,
+        )
         save_figure(fig, out / f)
         plots.append(
             Plot(
@@ -138,7 +145,9 @@ def write_plots(
                 f,
                 f"Boundary F1 vs threshold ({model})",
                 "Mean boundary F1 of the segmentation points against the true phase changes, with a tolerance "
-                "of ±1 frame, per condition and task.",
+                "of ±1 frame, per condition and task. ★: the threshold with the best mean F1, chosen on the same "
+                "episodes it is shown on — an optimistic upper bound, not a score; the tables report the paper's "
+                "fixed threshold and a leave-one-episode-out threshold instead.",
             )
         )
         for eid in example_episodes(s, examples):
@@ -262,6 +271,8 @@ def write_report(
         metadata=metadata_blocks(s),
         markdown=MARKDOWN,
         legend=LEGEND,
+        warnings=[f"{w['model']}: {w['message']}" for w in s.verdicts.get("warnings", [])],
+        verdicts=verdict_table(s) if s.verdicts.get("verdicts") else None,
     )
     index = out / INDEX
     atomic_write_text(index, render_page(ctx))

@@ -14,7 +14,7 @@ from vlmproprio.errors import VlmproprioError
 
 SCORES_DIR = "scores"
 # the score files a report needs; sweep.json (per episode) is left out: the plots use the means
-SCORE_FILES = ("rows", "aggregate", "sweep_aggregate", "paired", "audit", "traces", "meta")
+SCORE_FILES = ("rows", "aggregate", "sweep_aggregate", "paired", "audit", "traces", "meta", "verdicts")
 TASK_ORDER = ("door", "pick_place", "all")
 TASK_LABELS = {"door": "Door opening", "pick_place": "Bin pick-placing", "all": "All episodes"}
 
@@ -36,6 +36,7 @@ class RunScores:
     audit: dict
     traces: dict
     meta: dict
+    verdicts: dict = field(default_factory=dict)  # scores/verdicts.json: claims, verdicts, sanity warnings
     models: list[str] = field(default_factory=list)
     conditions: list[str] = field(default_factory=list)
     episodes: list[str] = field(default_factory=list)
@@ -106,7 +107,7 @@ def load_run_scores(run_dir: str | Path) -> RunScores:
     if not run_dir.is_dir():
         raise ReportError(f"{run_dir}: run directory not found")
     d = run_dir / SCORES_DIR
-    kinds = {"audit": dict, "traces": dict, "meta": dict}
+    kinds = {"audit": dict, "traces": dict, "meta": dict, "verdicts": dict}
     t = {name: _read_json(d / f"{name}.json", kinds.get(name, list)) for name in SCORE_FILES}
     manifest = _read_json(run_dir / "run.json", dict) if (run_dir / "run.json").is_file() else {}
     for i, r in enumerate(t["rows"]):
@@ -132,6 +133,7 @@ def load_run_scores(run_dir: str | Path) -> RunScores:
         audit=t["audit"],
         traces=t["traces"],
         meta=meta,
+        verdicts=t["verdicts"],
         models=models,
         conditions=conditions or list(dict.fromkeys(r["condition"] for r in t["rows"])),
         episodes=episodes or list(dict.fromkeys(r["episode_id"] for r in t["rows"])),

@@ -132,6 +132,8 @@ class PageContext:
     metadata: list[tuple[str, str]]
     markdown: str = "report.md"
     legend: list[tuple[str, str, str]] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)  # sanity warnings, shown first
+    verdicts: Table | None = None  # one row per model and primary hypothesis
 
 
 # ---------------------------------------------------------------------------------------------- captions

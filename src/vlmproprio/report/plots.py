@@ -30,6 +30,7 @@ CONDITION_STYLE = {
     "joint": ("#ff7f0e", ""),
     "both": ("#2ca02c", ""),
     "both_shuffled": ("#9467bd", "//"),
+    "both_permuted": ("#d62728", "--"),
     "both_noisy": ("#8c564b", "\\\\"),
     "state_only": ("#e377c2", ".."),
     "primitives": ("#bcbd22", "xx"),
@@ -115,8 +116,9 @@ def success_rates_figure(s: RunScores, model: str):
     return fig
 
 
-def sweep_figure(s: RunScores, model: str, metric: str, ylabel: str, title: str):
-    """Fig. 6 (metric 'points') or boundary F1 ('f1_tol1') against the threshold, one line per condition."""
+def sweep_figure(s: RunScores, model: str, metric: str, ylabel: str, title: str, mark_best: bool = False):
+    """Fig. 6 (metric 'points') or boundary F1 ('f1_tol1') against the threshold, one line per condition;
+    ``mark_best`` stars each line's in-sample best point (an optimistic upper bound, see the caption)."""
     tasks = s.tasks()
     conds = s.conditions
     fig = _figure(1.2 + 4.6 * len(tasks), 3.6)
@@ -132,6 +134,9 @@ def sweep_figure(s: RunScores, model: str, metric: str, ylabel: str, title: str)
                 continue
             colour, _, ls = condition_style(c, conds)
             ax.plot([p[0] for p in pts], [p[1] for p in pts], ls, color=colour, marker="o", ms=2.5, lw=1.3, label=c)
+            if mark_best:
+                best = max(pts, key=lambda p: (p[1], -p[0]))  # ties: the lowest threshold, as LOO picks
+                ax.plot([best[0]], [best[1]], "*", color=colour, ms=9, mec="black", mew=0.5)
         ax.axvline(s.threshold, color="black", ls=":", lw=1)
         ax.set_xlabel("cosine similarity threshold")
         ax.set_xlim(0, 1)

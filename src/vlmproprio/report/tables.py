@@ -30,9 +30,22 @@ LABELS = {
     "seg_gt_boundaries": "true boundaries",
     "seg_points": "points @thr",
     "seg_f1_tol1": "F1 @thr",
-    "seg_best_threshold": "best thr",
-    "seg_best_f1_tol1": "F1 @best",
-    "seg_edit": "edit score",
+    "seg_f1_tol1_chance": "chance F1 @thr",
+    "seg_f1_tol1_lift": "F1 lift @thr",
+    "seg_edit": "edit @thr",
+    "seg_loo_threshold": "LOO thr",
+    "seg_loo_points": "points LOO",
+    "seg_loo_f1_tol1": "F1 LOO",
+    "seg_loo_f1_tol1_chance": "chance F1",
+    "seg_loo_f1_tol1_even": "even F1",
+    "seg_loo_f1_tol1_lift": "F1 lift",
+    "seg_loo_edit": "edit LOO",
+    "seg_loo_edit_chance": "chance edit",
+    "seg_loo_edit_lift": "edit lift",
+    "seg_loo_f1_at_25": "F1@25 LOO",
+    "seg_loo_f1_at_25_lift": "F1@25 lift",
+    "seg_loo_f1_at_50": "F1@50 LOO",
+    "seg_groups_f1_tol1": "group-edge F1",
 }
 RATE_SUFFIXES = ("_mentioned", "_correct", "_wrong", "_missing")
 CAPTION_COLUMNS = (
@@ -51,9 +64,17 @@ SEGMENTATION_COLUMNS = (
     "seg_gt_boundaries",
     "seg_points",
     "seg_f1_tol1",
-    "seg_best_threshold",
-    "seg_best_f1_tol1",
-    "seg_edit",
+    "seg_f1_tol1_lift",
+    "seg_loo_threshold",
+    "seg_loo_points",
+    "seg_loo_f1_tol1",
+    "seg_loo_f1_tol1_chance",
+    "seg_loo_f1_tol1_even",
+    "seg_loo_f1_tol1_lift",
+    "seg_loo_edit",
+    "seg_loo_edit_lift",
+    "seg_loo_f1_at_25",
+    "seg_groups_f1_tol1",
     "frames_missing",
 )
 
@@ -66,6 +87,8 @@ def metric_kind(metric: str) -> str:
     if metric == "n_episodes":
         return "int"
     if metric == "frames_missing" or metric.endswith(("_words", "_points", "_boundaries", "_edit", "words")):
+        return "count"
+    if "_edit_" in metric:  # edit score chance / lift / even: 0-100 like the score
         return "count"
     if metric.endswith("hits_per_word"):
         return "ratio"
@@ -113,14 +136,22 @@ def fmt_p(p) -> str:
 
 
 def fmt_paired(metric: str, r: dict) -> str:
-    """'+40 pp [+10, +70] p=0.031' (rates in percentage points)."""
+    """'+40 pp [+10, +70] p=0.031 q=0.20' (rates in percentage points); a primary test shows its Holm-adjusted
+    p ('Holm p=') and a star, an exploratory one its Benjamini-Hochberg q-value."""
     d = r.get("mean_diff")
     if not _finite(d):
         return "–"
     unit = " pp" if metric_kind(metric) == "rate" else ""
     ci = f"[{fmt_diff(metric, r.get('ci_low'))}, {fmt_diff(metric, r.get('ci_high'))}]"
     p = fmt_p(r.get("p_value"))
-    return f"{fmt_diff(metric, d)}{unit} {ci} p{'' if p.startswith('<') else '='}{p}"
+    text = f"{fmt_diff(metric, d)}{unit} {ci} p{'' if p.startswith('<') else '='}{p}"
+    if r.get("family") == "primary":
+        h = fmt_p(r.get("p_holm"))
+        return f"★ {text} Holm p{'' if h.startswith('<') else '='}{h}"
+    if r.get("family") == "exploratory":
+        q = fmt_p(r.get("q_bh"))
+        return f"{text} q{'' if q.startswith('<') else '='}{q}"
+    return text
 
 
 def label(metric: str) -> str:
@@ -203,9 +234,13 @@ def segmentation_table(s: RunScores) -> Table:
         s,
         SEGMENTATION_COLUMNS,
         "Subtask segmentation",
-        f"Segmentation points at the threshold {thr:g} (cosine similarity of consecutive frame captions below it) "
-        "and boundary F1 against the true phase changes with a tolerance of ±1 frame, at that threshold and at the "
-        "threshold with the best mean F1 of the sweep. Edit score: 0-100 over the segment label sequence.",
+        f"Segmentation points at the paper's threshold {thr:g} (cosine similarity of consecutive frame captions "
+        "below it) and at a threshold chosen out of sample (LOO: the best mean boundary F1 on the other episodes "
+        "of the task). F1: boundary F1 against the true phase changes, ±1 frame. Chance: the expected F1 of the "
+        "same number of points placed at random; even: evenly spaced; lift = F1 − chance; group-edge F1: points "
+        "at the edges of the frame groups. Edit: MS-TCN's segmental edit score (0–100), F1@25: segmental F1 at "
+        "IoU 0.25, both on majority-labelled segments (docs/metrics.md). The in-sample best threshold is only "
+        "in the sweep plot, as an optimistic upper bound.",
         "segmentation",
     )
 
@@ -254,7 +289,10 @@ def paired_table(
     st = s.meta.get("stats", {})
     note = (
         "Mean difference A − B paired by episode (rates in percentage points), its "
-        f"{st.get('ci', 'bootstrap 95%')} CI and a {st.get('p_value', 'sign-flip permutation')} p-value."
+        f"{st.get('ci', 'bootstrap 95%')} CI and a {st.get('p_value', 'sign-flip permutation')} p-value. "
+        "★ marks a pre-registered primary hypothesis (its Holm-adjusted p decides); every other test is "
+        "exploratory and shows its Benjamini–Hochberg q-value: read it as a lead, not a finding. Segmentation "
+        "uses the out-of-sample (leave-one-episode-out) threshold; a lift is the score minus random chance."
     )
     return Table(
         title=title,
@@ -295,13 +333,86 @@ def judge_table(s: RunScores) -> Table | None:
     )
 
 
+def verdict_table(s: RunScores) -> Table:
+    """One row per model and pre-registered primary hypothesis: the verdict, effect with 95 % CI, corrected p."""
+    rows = []
+    for v in s.verdicts.get("verdicts", []):
+        rows.append(
+            [
+                v["model"],
+                f"{v['a']} > {v['b']}",
+                label(v["metric"]),
+                v["task"],
+                v["verdict"],
+                fmt_paired(v["metric"], {**v, "family": None}) if v.get("mean_diff") is not None else "–",
+                fmt_p(v.get("p_holm")),
+            ]
+        )
+    claims = s.verdicts.get("claims", {})
+    return Table(
+        title="Verdicts on the pre-registered hypotheses",
+        headers=["model", "hypothesis", "metric", "task", "verdict", "effect [95% CI] p", "Holm p"],
+        rows=rows,
+        align=["l", "l", "l", "l", "l", "r", "r"],
+        note=f"Primary hypotheses from {claims.get('source', 'claims.yml')} (alpha {claims.get('alpha', 0.05)}), "
+        "corrected with Holm's procedure per model. Supported: positive effect and Holm p ≤ alpha; not supported: "
+        "the 95% CI of the effect lies at or below 0 (or a significant negative effect); otherwise inconclusive.",
+        anchor="verdicts",
+        row_classes=[f"verdict-{r[4].replace(' ', '-')}" for r in rows],
+    )
+
+
+def verdict_lines(s: RunScores) -> list[str]:
+    """The report's first lines: every sanity warning, then one line per model and primary hypothesis."""
+    from vlmproprio.verdicts import format_verdict
+
+    out = [f"⚠ {w['model']}: {w['message']}" for w in s.verdicts.get("warnings", [])]
+    out += [f"{v['model']} — {format_verdict(v)}" for v in s.verdicts.get("verdicts", [])]
+    return out
+
+
+CORRELATION_DIMS = ("gripper", "x", "y", "z", "roll", "pitch", "yaw")
+
+
+def controls_table(s: RunScores) -> Table:
+    """How much each condition's numbers still tell about the episode: mean Pearson r with the true states."""
+    from vlmproprio.conditions import CONDITIONS, STATE_DIMENSIONS
+
+    rows = []
+    for cond, by_task in s.meta.get("controls", {}).items():
+        if cond != "both" and not (cond in CONDITIONS and CONDITIONS[cond].control):
+            continue  # the paper's own-state conditions show the true numbers (r = 1); "both" stands for them
+        for task in s.tasks():
+            dims = by_task.get(task)
+            if not dims:
+                continue
+            joints = [dims[d]["mean_r"] for d in STATE_DIMENSIONS[:7] if d in dims]
+            cells = [f"{sum(joints) / len(joints):+.2f}" if joints else "–"]
+            cells += [f"{dims[d]['mean_r']:+.2f}" if d in dims else "–" for d in CORRELATION_DIMS]
+            top = max((max(abs(v["max_r"]), abs(v["min_r"])) for v in dims.values()), default=None)
+            rows.append([cond, task, *cells, f"{top:.2f}" if top is not None else "–"])
+    return Table(
+        title="How much each condition's state still tells: correlation with the true states",
+        headers=["condition", "task", "joints 1–7", *CORRELATION_DIMS, "max |r|"],
+        rows=rows,
+        align=["l", "l", *("r" for _ in range(len(CORRELATION_DIMS) + 2))],
+        note="Mean over episodes of the Pearson r, per state dimension, between the numbers a condition's prompts "
+        "showed and the episode's true states (joints: mean of the seven joints; max |r|: the largest |r| of any "
+        "episode and dimension; all conditions, per dimension and over both tasks, are in scores/meta.json). A control near 0 carries no information about the episode's timeline; one near "
+        "1 is weak (reversed pick-and-place still resembles the original).",
+        anchor="controls",
+    )
+
+
 def report_tables(s: RunScores) -> list[Table]:
     # the metrics scoring paired (evaluation.PAIRED_METRICS, recorded in the scores), not a copy to keep in step
     caption_metrics = [m for m in s.paired_metrics if m.startswith("final_")]
     segmentation_metrics = [m for m in s.paired_metrics if m.startswith("seg_")]
     tables = [
+        verdict_table(s),
         caption_table(s),
         segmentation_table(s),
+        controls_table(s),
         paired_table(s, caption_metrics, "Paired differences: final captions", "paired-captions"),
         paired_table(s, segmentation_metrics, "Paired differences: segmentation", "paired-segmentation"),
     ]
@@ -309,7 +420,7 @@ def report_tables(s: RunScores) -> list[Table]:
     return [*tables, judged] if judged is not None else tables
 
 
-HEADLINE_METRICS = ("final_trajectory_correct", "final_all_correct", "final_words", "seg_f1_tol1")
+HEADLINE_METRICS = ("final_trajectory_correct", "final_all_correct", "final_words", "seg_loo_f1_tol1_lift")
 HEADLINE_COMPARISONS = (("both", BASELINE), ("both", "both_shuffled"))
 
 
@@ -331,6 +442,10 @@ def markdown_report(s: RunScores, tables: Sequence[Table], plots: Sequence[tuple
     enc = s.meta.get("encoder", {})
     lines = [
         f"# vlmproprio report: {s.run_dir.name}",
+        "",
+        "## Verdicts",
+        "",
+        *(f"- {line}" for line in verdict_lines(s)),
         "",
         f"- models: {', '.join(s.models)}",
         f"- episodes: {len(s.episodes)} ({', '.join(f'{TASK_LABELS.get(t, t)}: {sum(1 for e in s.episodes if s.task_of(e) == t)}' for t in s.tasks())})",

@@ -1,0 +1,172 @@
+"""Verdicts: the claims file, family marking with Holm / BH, the verdict rule, and the sanity warnings --
+on hand-made inputs and on the shipped models' replayed captions (the tiny random model must be flagged, the
+reference captioner must not be flagged as gibberish or near-constant)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from vlmproprio.stats import benjamini_hochberg, holm
+from vlmproprio.verdicts import (
+    ClaimsError,
+    ModelOutputs,
+    group_edge_excess,
+    load_claims,
+    mark_families,
+    non_word_share,
+    sanity_warnings,
+    verdict_of,
+    verdicts,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+FIXTURES = ROOT / "fixtures"
+
+
+def test_packaged_claims_are_a_small_primary_family():
+    c = load_claims()
+    assert c.alpha == 0.05 and 2 <= len(c.hypotheses) <= 6
+    ids = {h.id for h in c.hypotheses}
+    assert {"trajectory_both_vs_none", "boundary_lift_both_vs_none", "trajectory_both_vs_shuffled"} <= ids
+    assert all(h.task in ("door", "pick_place", "all") for h in c.hypotheses)
+    # every primary metric is one evaluation pairs
+    from vlmproprio.evaluation import PAIRED_METRICS
+
+    assert {h.metric for h in c.hypotheses} <= set(PAIRED_METRICS)
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("alpha: 0.05\n", "non-empty 'primary'"),
+        ("alpha: 2\nprimary: {h: {description: d, metric: m, a: x, b: y}}\n", "alpha must be"),
+        ("primary: {h: {description: d, metric: m, a: x}}\n", r"primary.h: missing b"),
+        ("primary: {h: {description: d, metric: m, a: x, b: y, side: left}}\n", "unknown key"),
+        ("primary: [\n", "cannot read"),
+    ],
+)
+def test_bad_claims_files_are_one_line_errors(tmp_path, text, match):
+    p = tmp_path / "claims.yml"
+    p.write_text(text)
+    with pytest.raises(ClaimsError, match=match):
+        load_claims(p)
+
+
+def _row(model, metric, a, b, p, d=0.1, lo=-0.1, hi=0.3, task="all"):
+    return {"model": model, "task": task, "metric": metric, "a": a, "b": b, "p_value": p, "mean_diff": d,
+            "ci_low": lo, "ci_high": hi, "n": 22}  # fmt: skip
+
+
+def test_mark_families_corrects_primary_with_holm_and_the_rest_with_bh_per_model(tmp_path):
+    p = tmp_path / "claims.yml"
+    p.write_text(
+        "alpha: 0.05\nprimary:\n"
+        "  h1: {description: d, metric: m1, a: both, b: none}\n"
+        "  h2: {description: d, metric: m2, a: both, b: none}\n"
+    )
+    claims = load_claims(p)
+    rows = [
+        _row("x", "m1", "both", "none", 0.01),
+        _row("x", "m2", "both", "none", 0.04),
+        _row("x", "m1", "both", "none", 0.001, task="door"),  # not the primary task: exploratory
+        _row("x", "m3", "both", "none", 0.02),
+        _row("y", "m1", "both", "none", 0.03),
+    ]
+    mark_families(rows, claims)
+    assert [r["family"] for r in rows] == ["primary", "primary", "exploratory", "exploratory", "primary"]
+    assert [rows[0]["p_holm"], rows[1]["p_holm"]] == holm([0.01, 0.04])  # 0.02, 0.04
+    assert [rows[2]["q_bh"], rows[3]["q_bh"]] == benjamini_hochberg([0.001, 0.02])
+    assert rows[4]["p_holm"] == 0.03  # model y: its own family of one
+    v = verdicts(rows, claims, ["x", "y"])
+    assert [x["verdict"] for x in v] == ["supported", "supported", "supported", "not tested"]
+
+
+@pytest.mark.parametrize(
+    ("d", "p_holm", "hi", "want"),
+    [
+        (0.2, 0.01, 0.4, "supported"),
+        (0.2, 0.05, 0.4, "supported"),
+        (0.2, 0.06, 0.4, "inconclusive"),
+        (0.0, 1.0, 0.0, "not supported"),  # CI [0, 0]: no positive effect is compatible with the data
+        (-0.1, 0.2, 0.05, "inconclusive"),
+        (-0.2, 0.01, -0.1, "not supported"),
+    ],
+)
+def test_verdict_rule(d, p_holm, hi, want):
+    assert verdict_of({"mean_diff": d, "p_holm": p_holm, "ci_high": hi}, 0.05) == want
+    assert verdict_of(None, 0.05) == "not tested"
+
+
+def test_binomial_tail_equals_scipy():
+    from scipy.stats import binomtest
+
+    from vlmproprio.verdicts import binomial_tail
+
+    for k, n, p in [(4, 4, 0.2), (0, 10, 0.3), (340, 1194, 0.188), (3, 50, 0.01), (50, 50, 0.5), (1, 1, 0.999)]:
+        assert binomial_tail(k, n, p) == pytest.approx(binomtest(k, n, p, alternative="greater").pvalue, rel=1e-9)
+
+
+def test_non_words_and_group_edges():
+    assert non_word_share(["The robot moves 0.25 m up.", "x1y2 ### ok"]) == (pytest.approx(2 / 9), 9)
+    # two 11-frame cells, k = 5: edges at 4 and 9 (2 of 10 positions)
+    g = group_edge_excess([(11, [4, 9]), (11, [4, 9])], 5)
+    assert (g["on_edges"], g["points"], g["expected"]) == (4, 4, pytest.approx(0.8))
+    assert g["p_value"] == pytest.approx(0.2**4)
+    assert group_edge_excess([(11, [1, 2, 6, 7])], 5)["on_edges"] == 0
+
+
+def test_sanity_warnings_fire_on_made_up_outputs():
+    good = ModelOutputs(
+        frame_captions=[f"the arm moves {i} cm left" for i in range(100)],
+        all_captions=["the arm moves left"] * 10,
+        final_hits=[2] * 10,
+        cells=[(11, [2]), (11, [6])],
+    )
+    bad = ModelOutputs(
+        frame_captions=["zq\x04xx"] * 100,
+        frames_missing=300,
+        all_captions=["zq\x04xx ��a"] * 10,
+        final_hits=[0] * 10,
+        cells=[(11, [4, 9])] * 20,
+    )
+    w = sanity_warnings({"good": good, "bad": bad}, 5)
+    assert {x["kind"] for x in w if x["model"] == "bad"} == {
+        "near-constant",
+        "missing-captions",
+        "gibberish",
+        "group-edges",
+    }
+    assert not [x for x in w if x["model"] == "good"]
+
+
+def _replayed_outputs(model: str, tmp_path: Path) -> ModelOutputs:
+    """The model's captions from its committed cassette / rules (no embeddings needed)."""
+    from vlmproprio.conditions import parse_conditions
+    from vlmproprio.episodes import load_episodes
+    from vlmproprio.runner import RunPlan, run
+    from vlmproprio.scoring import expectation_for, load_lexicon, score_text
+    from vlmproprio.transcripts import read_transcripts
+
+    out = tmp_path / model
+    run(RunPlan(models=(model,), conditions=tuple(parse_conditions("all")), fixtures=FIXTURES, out=out,
+                mode="replay", progress=False))  # fmt: skip
+    eps = {e.episode_id: e for e in load_episodes(FIXTURES)}
+    o = ModelOutputs()
+    for t in read_transcripts(out):
+        lex = load_lexicon(t.task)
+        present = [f.text for f in t.frames if f.status != "missing" and f.text.strip()]
+        o.frame_captions += present
+        o.frames_missing += len(eps[t.episode_id].frames) - len(present)
+        o.all_captions += [*present, *(s.text for s in t.scenes), t.final]
+        o.final_hits.append(score_text(t.final, expectation_for(eps[t.episode_id], lex), lex).hits)
+    return o
+
+
+def test_tiny_random_model_is_flagged_and_the_reference_captioner_is_not(tmp_path):
+    outputs = {m: _replayed_outputs(m, tmp_path) for m in ("reference", "tiny-qwen2-vl")}
+    w = sanity_warnings(outputs, 5)
+    kinds = {m: {x["kind"] for x in w if x["model"] == m} for m in outputs}
+    assert {"gibberish", "near-constant"} <= kinds["tiny-qwen2-vl"]
+    assert not kinds["reference"] & {"gibberish", "near-constant", "missing-captions"}
