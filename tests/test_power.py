@@ -95,3 +95,15 @@ def test_cli_refuses_bad_settings_in_one_line(tmp_path, capsys):
     assert len(err) == 1 and "alpha" in err[0]
     with pytest.raises(Exception, match="probabilities"):
         analyse(PowerSettings(n_sims=10), correctness=(1.2, 0.0))
+
+
+def test_default_family_is_the_pre_registered_primary_family():
+    """Power is computed at the level the verdicts use: alpha / the number of primary hypotheses in claims.yml."""
+    import yaml
+
+    from vlmproprio import power
+    from vlmproprio.verdicts import CLAIMS_FILE
+
+    claims = yaml.safe_load(CLAIMS_FILE.read_text())
+    assert power.PowerSettings().family == len(claims["primary"])
+    assert power.PowerSettings().alpha == claims["alpha"]

@@ -120,12 +120,14 @@ def test_non_words_and_group_edges():
 def test_sanity_warnings_fire_on_made_up_outputs():
     good = ModelOutputs(
         frame_captions=[f"the arm moves {i} cm left" for i in range(100)],
+        cell_distinct=[0.9] * 10,
         all_captions=["the arm moves left"] * 10,
         final_hits=[2] * 10,
         cells=[(11, [2]), (11, [6])],
     )
     bad = ModelOutputs(
         frame_captions=["zq\x04xx"] * 100,
+        cell_distinct=[0.1] * 8 + [0.2] * 2,
         frames_missing=300,
         all_captions=["zq\x04xx ��a"] * 10,
         final_hits=[0] * 10,
@@ -158,6 +160,7 @@ def _replayed_outputs(model: str, tmp_path: Path) -> ModelOutputs:
         lex = load_lexicon(t.task)
         present = [f.text for f in t.frames if f.status != "missing" and f.text.strip()]
         o.frame_captions += present
+        o.cell_distinct.append(len(set(present)) / len(t.frames))
         o.frames_missing += len(eps[t.episode_id].frames) - len(present)
         o.all_captions += [*present, *(s.text for s in t.scenes), t.final]
         o.final_hits.append(score_text(t.final, expectation_for(eps[t.episode_id], lex), lex).hits)
@@ -165,8 +168,9 @@ def _replayed_outputs(model: str, tmp_path: Path) -> ModelOutputs:
 
 
 def test_tiny_random_model_is_flagged_and_the_reference_captioner_is_not(tmp_path):
-    outputs = {m: _replayed_outputs(m, tmp_path) for m in ("reference", "tiny-qwen2-vl")}
+    outputs = {m: _replayed_outputs(m, tmp_path) for m in ("reference", "reference-state", "tiny-qwen2-vl")}
     w = sanity_warnings(outputs, 5)
     kinds = {m: {x["kind"] for x in w if x["model"] == m} for m in outputs}
     assert {"gibberish", "near-constant"} <= kinds["tiny-qwen2-vl"]
-    assert not kinds["reference"] & {"gibberish", "near-constant", "missing-captions"}
+    for readable in ("reference", "reference-state"):  # templated, but every episode's captions follow its input
+        assert not kinds[readable] & {"gibberish", "near-constant", "missing-captions"}, readable

@@ -808,7 +808,9 @@ def build_parser() -> argparse.ArgumentParser:
         "Writes power.json, power.md and power_curves.png to --out.",
     )
     p.add_argument("--alpha", type=float, help="family-wise alpha (default 0.05)")
-    p.add_argument("--family", type=int, help="primary hypotheses corrected together with Holm (default 3)")
+    p.add_argument(
+        "--family", type=int, help="primary hypotheses corrected together with Holm (default 4, as in claims.yml)"
+    )
     p.add_argument("--sims", type=int, help="simulated data sets per point (default 1000)")
     p.add_argument("--seed", type=int, help="simulation seed (default: the statistics' seed)")
     p.add_argument(

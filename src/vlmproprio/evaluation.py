@@ -455,6 +455,7 @@ def score_run(
         o.frames_missing += statuses.count("missing")
         present = [x for x, st in zip(texts, statuses, strict=True) if st != "missing"]
         o.frame_captions.extend(present)
+        o.cell_distinct.append(len(set(present)) / len(ep.frames))
         o.all_captions.extend([*present, *scene_texts, final_text])
         o.final_hits.append(final.hits)
         audit[key] = {

@@ -41,7 +41,7 @@ from vlmproprio.options import (
     split_list,
 )
 
-DEFAULT_MODELS = ("reference", "tiny-qwen2-vl")
+DEFAULT_MODELS = ("reference", "reference-state", "tiny-qwen2-vl")
 CELL_FIXTURE = "bench_cell"
 MODEL_FIXTURE = "bench_model"
 
