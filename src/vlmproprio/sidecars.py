@@ -6,7 +6,7 @@ vectors. ``build_sidecar`` stores them in ``<fixtures>/responses/<model slug>.em
 of a run's models before it looks for an encoder, so replaying and scoring the benchmark needs no torch.
 
 Which captions: those of a replay run of the model over every episode and condition of the fixtures with the
-benchmark's settings (what ``pytest benchmark/`` and ``vlmproprio run --mode replay`` score), or those of
+benchmark's settings (what ``pytest benchmark/`` and ``vlmproprio run --model MODEL --mode replay`` score), or those of
 given run folders. The ``reference`` captioner has no cassette (it is computed, deterministically, from the
 states), but its captions are as fixed as a cassette's, so it gets a sidecar the same way.
 """

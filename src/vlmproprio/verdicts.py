@@ -1,7 +1,7 @@
 """Verdicts a reviewer accepts: pre-registered primary hypotheses, corrected tests, sanity warnings.
 
 * **Primary hypotheses** are read from a claims file (default: the packaged ``vlmproprio/claims.yml``, the
-  pre-registration; ``vlmproprio score --claims FILE`` for another one). Each names a metric, two conditions
+  pre-registration; ``vlmproprio score RUN_DIR --claims FILE`` for another one). Each names a metric, two conditions
   A and B and a task group; it predicts A > B. Per model, the family of primary tests is corrected with
   Holm's step-down procedure (family-wise error rate ``alpha``).
 * **Every other paired test is exploratory** and carries a Benjamini-Hochberg q-value, computed per model

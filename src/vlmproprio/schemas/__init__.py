@@ -27,6 +27,7 @@ RUN_FILES: dict[str, str] = {
     "scores/traces.json": "traces",
     "scores/meta.json": "meta",
     "scores/timing.json": "timing",
+    "scores/verdicts.json": "verdicts",
 }
 
 
