@@ -25,6 +25,7 @@ PLOTS = (
     "f1_threshold__synthetic.png",
     "fig7_trace_door_00__synthetic.png",
     "fig8_trace_bin0_00__synthetic.png",
+    "power_curves.png",
 )
 
 
@@ -69,6 +70,25 @@ def test_report_folder_has_page_markdown_plots_and_thumbnails(run, page):
         assert not src.startswith(("/", "http:", "https:", "file:")), src
         assert (out / src).is_file(), src
     assert (out / "index.html").stat().st_mode & 0o044, "report files must be readable by others"
+
+
+def test_power_section_uses_the_runs_episodes_and_corrected_alpha(run, page):
+    """The minimal detectable effects shown are vlmproprio.power's for this run's episodes per task, at alpha over
+    the number of primary hypotheses it was scored against."""
+    from vlmproprio import power
+    from vlmproprio.report.data import load_run_scores
+    from vlmproprio.report.power_section import run_groups
+
+    s = load_run_scores(run[0])
+    groups = run_groups(s)
+    assert groups["all"] == sum(v for k, v in groups.items() if k != "all") == len({r["episode_id"] for r in s.rows})
+    n_primary = len(s.verdicts["claims"]["primary"])
+    level = power.PowerSettings(alpha=s.verdicts["claims"]["alpha"], family=n_primary).level
+    md = (page[0].parent / "report.md").read_text(encoding="utf-8")
+    assert f"= {level:.4f}" in md
+    for g, n in groups.items():
+        mde = power.rate_mde(n, 0.0, level)
+        assert _md_row(md, g, str(n))[2] == ("never" if mde is None else f"{mde:.2f}")
 
 
 def test_markdown_tables_show_the_scores(run, page):

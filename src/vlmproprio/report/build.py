@@ -19,6 +19,7 @@ from vlmproprio.report.page import (
     write_thumbnail,
 )
 from vlmproprio.report.plots import Plot, save_figure, success_rates_figure, sweep_figure, trace_figure
+from vlmproprio.report.power_section import power_outputs
 from vlmproprio.report.tables import headline_table, markdown_report, report_tables, verdict_table
 from vlmproprio.transcripts import Transcript, read_transcripts
 
@@ -236,6 +237,10 @@ def write_report(
 
     plots = write_plots(s, out, transcripts, examples, trace_conditions)
     tables = report_tables(s)
+    if s.rows:
+        power_plot, power_tab = power_outputs(s, out)
+        plots.append(power_plot)
+        tables.append(power_tab)
     atomic_write_text(out / MARKDOWN, markdown_report(s, tables, [(p.file, p.title) for p in plots]))
 
     keep = {p.file for p in plots}
