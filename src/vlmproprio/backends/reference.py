@@ -224,12 +224,19 @@ class ReferenceBackend(Backend):
 
     max_batch_size = 1024
     calls_model = False
+    # what a rule-based captioner is (its cache identity) and says about itself; subclasses change these four
+    model_id = MODEL_ID
+    rules_version = RULES_VERSION
+    note = "rule-based reference captioner, not a vision-language model"
+
+    def answer(self, request: ChatRequest) -> str:
+        return reference_answer(request)
 
     def identity(self) -> dict[str, str]:
         return {
             "backend": "reference",
-            "model_id": MODEL_ID,
-            "revision": RULES_VERSION,
+            "model_id": self.model_id,
+            "revision": self.rules_version,
             "dtype": "",
             "attn_implementation": "",
         }
@@ -238,13 +245,13 @@ class ReferenceBackend(Backend):
         out = []
         for req in requests:
             t0 = time.perf_counter()
-            text = reference_answer(req)
+            text = self.answer(req)
             meta = AnswerMeta(
                 **self.identity(),
                 device="cpu",
                 completion_tokens=len(text.split()),
                 latency_s=time.perf_counter() - t0,
-                extra={"note": "rule-based reference captioner, not a vision-language model"},
+                extra={"note": self.note},
             )
             out.append(Answer(text=text, meta=meta))
         return out

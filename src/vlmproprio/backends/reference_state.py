@@ -51,16 +51,14 @@ from __future__ import annotations
 import io
 import itertools
 import math
-import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
 
 import numpy as np
 
-from vlmproprio.backends.base import Backend
-from vlmproprio.backends.reference import PROCESS_RE, process_number, reference_answer
-from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart
+from vlmproprio.backends.reference import PROCESS_RE, ReferenceBackend, process_number, reference_answer
+from vlmproprio.chat import ChatRequest, ImagePart
 from vlmproprio.prompts.state import ParsedState, parse_state_lines
 
 RULES_VERSION = "state-rules-1"
@@ -421,32 +419,12 @@ def state_answer(request: ChatRequest) -> str:
     return pick_place_instruction(seq, scene) if scene.name == PICK_PLACE else door_instruction(seq)
 
 
-class ReferenceStateBackend(Backend):
+class ReferenceStateBackend(ReferenceBackend):
     """Task-aware captions from the state numbers: a positive control with a known effect, not a VLM."""
 
-    max_batch_size = 1024
-    calls_model = False
+    model_id = MODEL_ID
+    rules_version = RULES_VERSION
+    note = NOTE
 
-    def identity(self) -> dict[str, str]:
-        return {
-            "backend": "reference",
-            "model_id": MODEL_ID,
-            "revision": RULES_VERSION,
-            "dtype": "",
-            "attn_implementation": "",
-        }
-
-    def generate(self, requests: Sequence[ChatRequest]) -> list[Answer]:
-        out = []
-        for req in requests:
-            t0 = time.perf_counter()
-            text = state_answer(req)
-            meta = AnswerMeta(
-                **self.identity(),
-                device="cpu",
-                completion_tokens=len(text.split()),
-                latency_s=time.perf_counter() - t0,
-                extra={"note": NOTE},
-            )
-            out.append(Answer(text=text, meta=meta))
-        return out
+    def answer(self, request: ChatRequest) -> str:
+        return state_answer(request)
