@@ -38,6 +38,9 @@ import numpy as np
 
 from vlmproprio.errors import VlmproprioError
 
+# atomic_write_* and sha256_file live in vlmproprio.io; importing them from here keeps working
+from vlmproprio.io import atomic_write_bytes, atomic_write_text, load_json, sha256_file
+
 FORMAT_VERSION = 1
 TASKS = ("door", "pick_place", "lift")
 JOINT_DIM = 8
@@ -199,14 +202,6 @@ def standard_episode_ids() -> list[str]:
 # ---------------------------------------------------------------------------------------------- hashing
 
 
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def pixel_sha256(rgb: np.ndarray) -> str:
     """Hash of decoded pixels: equal images hash equal whatever PNG encoder wrote them."""
     arr = np.ascontiguousarray(rgb, dtype=np.uint8)
@@ -272,7 +267,7 @@ def read_manifest(root: Path) -> dict[str, str]:
     if not path.is_file():
         raise EpisodeError(f"{path}: manifest missing (run `vlmproprio manifest {root}` after changing fixtures)")
     try:
-        data = json.loads(path.read_text())
+        data = load_json(path, error=EpisodeError)
         files = data["files"]
         if not isinstance(files, dict):
             raise TypeError("'files' is not an object")
@@ -303,30 +298,6 @@ def verify_files(root: Path, prefix: str = "", manifest: dict[str, str] | None =
 
 
 # ---------------------------------------------------------------------------------------------- io helpers
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write via a temp file in the same folder and rename, so a reader never sees half a file."""
-    import os
-    import tempfile
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes owner-only files; results are meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def write_steps(path: Path, states: StepStates) -> None:
@@ -445,9 +416,9 @@ def load_episode(root: Path, episode_id: str, *, verify: bool = True, manifest: 
         verify_files(root, f"episodes/{episode_id}/", manifest)
     path = episode_dir / EPISODE_FILE
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise EpisodeError(f"{path}: cannot read episode metadata ({exc})") from exc
+        data = load_json(path, error=EpisodeError)
+    except FileNotFoundError as exc:
+        raise EpisodeError(f"{path}: cannot read episode metadata (missing)") from exc
     if not isinstance(data, dict):
         raise EpisodeError(f"{path}: episode metadata must be a JSON object")
     episode = _parse_episode(episode_dir, data)

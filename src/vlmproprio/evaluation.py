@@ -33,8 +33,9 @@ from pathlib import Path
 import numpy as np
 
 from vlmproprio.embeddings import default_embedding_dir
-from vlmproprio.episodes import Episode, atomic_write_text, load_episodes
+from vlmproprio.episodes import Episode, load_episodes
 from vlmproprio.errors import VlmproprioError
+from vlmproprio.io import atomic_write_text, load_json
 from vlmproprio.scoring import ITEMS, CaptionScore, expectation_for, load_lexicon, score_text
 from vlmproprio.segmentation import (
     DEFAULT_THRESHOLD,
@@ -98,10 +99,7 @@ def _read_run_manifest(run_dir: Path) -> dict:
     path = run_dir / "run.json"
     if not path.is_file():
         return {}
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise ScoreRunError(f"{path}: cannot read run manifest ({exc})") from exc
+    data = load_json(path, error=ScoreRunError)
     if not isinstance(data, dict):
         raise ScoreRunError(f"{path}: run manifest must be a JSON object")
     return data

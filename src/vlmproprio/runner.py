@@ -20,8 +20,9 @@ from pathlib import Path
 from urllib.parse import urlsplit, urlunsplit
 
 from vlmproprio.conditions import Condition
-from vlmproprio.episodes import Episode, atomic_write_text, load_episodes, register_fixture_file
+from vlmproprio.episodes import Episode, load_episodes, register_fixture_file
 from vlmproprio.errors import UsageError
+from vlmproprio.io import atomic_write_text
 from vlmproprio.pipeline import PipelineSettings, answer_chunk, calls_per_episode, caption_episodes
 from vlmproprio.transcripts import Transcript, write_transcript
 

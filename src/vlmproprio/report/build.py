@@ -6,7 +6,8 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 
-from vlmproprio.episodes import Episode, atomic_write_text
+from vlmproprio.episodes import Episode
+from vlmproprio.io import atomic_write_text
 from vlmproprio.report.data import TASK_LABELS, ReportError, RunScores, load_run_scores
 from vlmproprio.report.page import (
     FRAMES_DIR,

@@ -6,11 +6,11 @@ here, so a report always shows the numbers the scores hold.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from vlmproprio.errors import VlmproprioError
+from vlmproprio.io import load_json
 
 SCORES_DIR = "scores"
 # the score files a report needs; sweep.json (per episode) is left out: the plots use the means
@@ -85,7 +85,7 @@ def scores_present(run_dir: str | Path) -> bool:
 
 def _read_json(path: Path, kind: type):
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = load_json(path, error=ReportError)
     except FileNotFoundError:
         raise ReportError(f"{path}: missing; score the run first (`vlmproprio score {path.parent.parent}`)") from None
     except (OSError, ValueError) as exc:
