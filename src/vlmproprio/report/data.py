@@ -101,6 +101,13 @@ def load_run_scores(run_dir: str | Path) -> RunScores:
     if not run_dir.is_dir():
         raise ReportError(f"{run_dir}: run directory not found")
     d = run_dir / SCORES_DIR
+    if (d / "meta.json").is_file():  # else the missing-file error below says to score the run
+        from vlmproprio.evaluation import StaleScoresError, check_scores
+
+        try:  # one generation, stamped with what it was computed from: refuse stale or mixed scores
+            check_scores(run_dir, [f"{name}.json" for name in SCORE_FILES])
+        except StaleScoresError as exc:
+            raise ReportError(str(exc)) from None
     kinds = {"audit": dict, "traces": dict, "meta": dict}
     t = {name: _read_json(d / f"{name}.json", kinds.get(name, list)) for name in SCORE_FILES}
     manifest = _read_json(run_dir / "run.json", dict) if (run_dir / "run.json").is_file() else {}
