@@ -20,6 +20,7 @@ from vlmproprio.episodes import (
     StepStates,
     TargetBin,
     episode_metadata,
+    pixel_sha256,
     write_episode,
     write_manifest,
 )
@@ -143,7 +144,7 @@ def write_fixture_episode(root: Path, episode_id: str, task: str, n_frames: int,
                 "index": i,
                 "step": i * 20,
                 "file": f"frames/{i:03d}.png",
-                "pixel_sha256": "0" * 64,
+                "pixel_sha256": pixel_sha256(img),
                 "joints": [float(x) for x in joints[i]],
                 "ee": [float(x) for x in ee[i]],
                 "phase": phase,
@@ -176,13 +177,18 @@ def write_fixture_episode(root: Path, episode_id: str, task: str, n_frames: int,
         phases=spans,
         frame_rows=rows,
     )
-    n = n_frames
+    # full-rate states that agree with the frame rows at every sampled step (loading checks they do)
+    vocab = list(meta["direction_vocab"])
+
+    def full(a: np.ndarray) -> np.ndarray:
+        return np.concatenate([np.repeat(a, 20, axis=0), a[-1:]])
+
     states = StepStates(
-        step=np.arange(n, dtype=np.int64),
-        joints=joints,
-        ee=ee,
-        phase=np.zeros(n, dtype=np.int64),
-        direction=np.zeros(n, dtype=np.int64),
+        step=np.arange(n_frames * 20 + 1, dtype=np.int64),
+        joints=full(joints),
+        ee=full(ee),
+        phase=full(np.array([names.index(p) for p, _ in plan], dtype=np.int64)),
+        direction=full(np.array([vocab.index(d) if d in vocab else 0 for _, d in plan], dtype=np.int64)),
     )
     write_episode(root, meta, [img] * n_frames, states)
 

@@ -336,6 +336,9 @@ def score_run(
 
     spec = encoder if encoder is not None else encoder_spec()
     cache_dir = Path(embedding_cache) if embedding_cache is not None else default_embedding_dir()
+    from vlmproprio.runner import refuse_nesting
+
+    refuse_nesting(root, {"RUN_DIR": run_dir, "--embedding-cache": cache_dir})
     aligned = {}
     for t in transcripts:
         where = f"{run_dir}/transcripts/{t.model}/{t.episode_id}__{t.condition}.json"

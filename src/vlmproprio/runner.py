@@ -200,14 +200,13 @@ def _inside(a: Path, b: Path) -> bool:
     return a == b or b in a.parents
 
 
-def refuse_nesting(fixtures: Path, **folders: Path | None) -> None:
-    """Refuse an output or cache folder inside the fixtures (the manifest would then see extra files and every
-    later run fail), and fixtures inside one of them."""
+def refuse_nesting(fixtures: Path, folders: dict[str, Path | None]) -> None:
+    """Refuse an output or cache folder (``folders``: option name -> folder) inside the fixtures, where the
+    manifest would see extra files and every later run fail, and the fixtures inside one of them."""
     fixtures = Path(fixtures)
-    for option, folder in folders.items():
+    for flag, folder in folders.items():
         if folder is None:
             continue
-        flag = "--" + option.replace("_", "-")
         if _inside(Path(folder), fixtures):
             raise UsageError(
                 f"{flag} {folder} is inside the fixture folder {fixtures}; fixtures hold frozen data only "
@@ -286,7 +285,7 @@ def run(plan: RunPlan) -> list[ModelRun]:
             raise UsageError(f"models {slugs[slug]!r} and {name!r} would share the folder transcripts/{slug}")
     from vlmproprio.cache import default_cache_dir
 
-    refuse_nesting(Path(plan.fixtures), out=plan.out, cache_dir=plan.cache_dir or default_cache_dir())
+    refuse_nesting(Path(plan.fixtures), {"--out": plan.out, "--cache-dir": plan.cache_dir or default_cache_dir()})
     settings = plan.backend or BackendSettings()
     settings = BackendSettings(**{**asdict(settings), "cassette_dir": Path(plan.fixtures) / "responses"})
     peers = load_episodes(plan.fixtures)  # verifies every episode; both_shuffled may borrow from any of them

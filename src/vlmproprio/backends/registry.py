@@ -211,6 +211,9 @@ def create_backend(name: str, mode: str = "live", settings: BackendSettings | No
         path = cassette_path(name, settings.cassette_dir)
         if not path.is_file():
             raise BackendError(f"no cassette for model {name!r} at {path}; " + _record_hint(name))
+        from vlmproprio.episodes import check_fixture_file
+
+        check_fixture_file(path)  # against the fixtures' manifest, before any answer is used
         return ReplayBackend(path, model=model_slug(name))
     if spec.backend == "hf":
         from vlmproprio.backends.hf import HFBackend
