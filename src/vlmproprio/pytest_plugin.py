@@ -58,7 +58,7 @@ def pytest_configure(config: pytest.Config) -> None:
     # line), but only when given: the plugin is loaded in every pytest session, including other projects'.
     if (
         config.getoption("vp_models")
-        or config.getoption("vp_episodes")
+        or config.getoption("vp_episodes") is not None
         or config.getoption("vp_conditions") != "all"
         or config.getoption("vp_fixtures")
     ):
@@ -127,7 +127,9 @@ class BenchSession:
 
                 if not isinstance(exc, VlmproprioError):
                     raise
-                self.failures[model] = f"{model}: {exc}"
+                from vlmproprio.secrets import scrub
+
+                self.failures[model] = scrub(f"{model}: {exc}")
                 pytest.fail(self.failures[model], pytrace=False)
         return self.results[model]
 
@@ -177,6 +179,8 @@ def _session(config: pytest.Config) -> BenchSession:
     fixtures = Path(config.getoption("vp_fixtures") or Path(config.rootpath) / "fixtures")
     episodes_opt = config.getoption("vp_episodes")
     episodes = tuple(e.strip() for e in episodes_opt.split(",") if e.strip()) if episodes_opt else ()
+    if episodes_opt is not None and not episodes:  # `--episodes ""` (an empty shell variable) is not "all"
+        raise pytest.UsageError("--episodes: no episode ids given; name some (comma separated) or leave it out for all")
     if not episodes:
         episodes = tuple(list_episode_ids(fixtures))
     if not episodes:  # no cells to parametrise: pytest would crash (INTERNALERROR) on the empty parameter list
@@ -244,7 +248,11 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
 def _skip_unavailable(s: BenchSession, model: str) -> None:
     avail = s.availability(model)
     if not avail:
-        pytest.skip(f"{model} cannot run in {s.mode} mode here: {avail.reason}")
+        message = f"{model} cannot run in {s.mode} mode here: {avail.reason}"
+        if s.config.getoption("vp_models"):
+            # asked for by name: a benchmark of a model that cannot run is a failure, not "all skipped", exit 0
+            pytest.fail(message, pytrace=False)
+        pytest.skip(message)
 
 
 @dataclass(frozen=True)
