@@ -616,9 +616,17 @@ def code_version() -> dict:
 
 
 def transcripts_digest(run_dir: Path, files: Sequence[Path]) -> str:
-    from vlmproprio.io import sha256_file
+    """The digest of what the transcripts say, leaving out how it was obtained (``requests``: cache hits and
+    latencies; ``timing``), which a resumed or repeated run changes without changing a word."""
+    from vlmproprio.io import load_json
 
-    return _digest({p.relative_to(run_dir).as_posix(): sha256_file(p) for p in files})
+    said = {}
+    for p in files:
+        d = load_json(p, error=ScoreRunError)
+        said[p.relative_to(run_dir).as_posix()] = (
+            {k: v for k, v in d.items() if k not in ("requests", "timing")} if isinstance(d, dict) else d
+        )
+    return _digest(said)
 
 
 def score_inputs(
@@ -696,9 +704,11 @@ def check_scores(run_dir: str | Path, names: Sequence[str] = ()) -> dict:
     try:
         stamp = load_json(out / STAMP_FILE, error=StaleScoresError)
     except FileNotFoundError:
-        raise StaleScoresError(f"{out}: no {STAMP_FILE} (scores from an older version or incomplete); {fix}") from None
+        raise StaleScoresError(
+            f"{out}: scores are out of date: no {STAMP_FILE} (scores from an older version or incomplete); {fix}"
+        ) from None
     if not isinstance(stamp, dict) or not isinstance(stamp.get("inputs"), dict):
-        raise StaleScoresError(f"{out / STAMP_FILE}: not a score stamp; {fix}")
+        raise StaleScoresError(f"{out / STAMP_FILE}: scores are out of date: not a score stamp; {fix}")
     recorded, files = stamp["inputs"], stamp.get("files", {})
     if recorded.get("code") != code_version():
         raise StaleScoresError(
@@ -718,5 +728,7 @@ def check_scores(run_dir: str | Path, names: Sequence[str] = ()) -> dict:
     for name in names or list(files):
         path = out / name
         if name not in files or not path.is_file() or sha256_file(path) != files[name]:
-            raise StaleScoresError(f"{path}: not the file of this generation of scores (changed or mixed); {fix}")
+            raise StaleScoresError(
+                f"{path}: scores are out of date: not the file of this generation of scores (changed or mixed); {fix}"
+            )
     return stamp
