@@ -664,7 +664,7 @@ def swap_in_generation(run_dir: Path, files: dict[str, str], inputs: dict) -> li
     import shutil
     import uuid
 
-    from vlmproprio.io import make_dirs, writing
+    from vlmproprio.io import WriteError, writing
 
     _remove_leftovers(run_dir)  # a score killed before its swap left these
     tag = f"{os.getpid()}-{uuid.uuid4().hex[:8]}"
@@ -674,8 +674,12 @@ def swap_in_generation(run_dir: Path, files: dict[str, str], inputs: dict) -> li
         run_dir / "scores",
     )
     try:
-        make_dirs(new)
-        written = {name: atomic_write_text(new / name, text) for name, text in files.items()}
+        with writing(out, "write scores into"):
+            new.mkdir(parents=True)
+        try:
+            written = {name: atomic_write_text(new / name, text) for name, text in files.items()}
+        except WriteError as exc:  # name the folder the user knows, not the hidden one
+            raise WriteError(str(exc).replace(str(new), str(out))) from exc.__cause__
         # timing.json differs between runs by nature: leaving it out keeps stamp.json byte-identical too
         stamp = {**inputs, "files": {k: v for k, v in sorted(written.items()) if k != "timing.json"}}
         atomic_write_text(new / STAMP_FILE, dumps_json(stamp))
