@@ -16,7 +16,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from reliability_support import assert_one_line_error, cli, cli_env, fixture_subset
+from reliability_support import assert_one_line_error, cache_env_sharing_embeddings, cli, fixture_subset
 
 RUN_ARGS = ("--model", "reference", "--episodes", "door_00", "--conditions", "none,both", "--frame-stride", "3")
 
@@ -25,7 +25,7 @@ RUN_ARGS = ("--model", "reference", "--episodes", "door_00", "--conditions", "no
 def scored(tmp_path_factory):
     root = tmp_path_factory.mktemp("generations")
     fixtures = fixture_subset(root / "fixtures", ["door_00", "door_01"])
-    env = cli_env(VLMPROPRIO_CACHE=str(root / "cache"))
+    env = cache_env_sharing_embeddings(root, tmp_path_factory)
     run = root / "run"
     proc = cli(["run", *RUN_ARGS, "--fixtures", fixtures, "--out", run, "--no-progress"], env=env)
     assert proc.returncode == 0, proc.stderr

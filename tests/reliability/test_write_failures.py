@@ -17,7 +17,14 @@ import shutil
 from pathlib import Path
 
 import pytest
-from reliability_support import all_files, assert_one_line_error, cli, cli_env, fixture_subset, temp_leftovers
+from reliability_support import (
+    all_files,
+    assert_one_line_error,
+    cache_env_sharing_embeddings,
+    cli,
+    fixture_subset,
+    temp_leftovers,
+)
 
 RUN_ARGS = ("--model", "reference", "--episodes", "door_00", "--conditions", "none", "--frame-stride", "3")
 
@@ -61,7 +68,7 @@ elif KIND == "sqlite-full":
 def base(tmp_path_factory):
     root = tmp_path_factory.mktemp("writes")
     fixtures = fixture_subset(root / "fixtures", ["door_00"])
-    env = cli_env(VLMPROPRIO_CACHE=str(root / "cache"))
+    env = cache_env_sharing_embeddings(root, tmp_path_factory)
     run = root / "run"
     for args in (["run", *RUN_ARGS, "--fixtures", fixtures, "--out", run, "--no-progress"], ["score", run]):
         proc = cli(args, env=env)
