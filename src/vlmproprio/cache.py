@@ -67,7 +67,7 @@ from typing import TYPE_CHECKING, Literal
 
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart, RequestTag
 from vlmproprio.errors import UsageError, VlmproprioError
-from vlmproprio.io import atomic_write_text, loads_json, make_dirs, writing
+from vlmproprio.io import atomic_write_text, loads_json, write_error, writing
 from vlmproprio.secrets import scrub, scrub_obj
 
 if TYPE_CHECKING:  # type only: cache comes before backends in the stage order
@@ -275,7 +275,10 @@ class ResponseCache:
         import diskcache
 
         self.directory = Path(directory)
-        make_dirs(self.directory)
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:  # a file in the way, a read-only or full disk
+            raise write_error(self.directory, exc, "create cache directory") from exc
         self._cache = None
         # Opening runs schema setup (PRAGMAs, CREATE TABLE) that can collide with another process doing the same.
         deadline = time.monotonic() + timeout_s

@@ -39,7 +39,7 @@ import numpy as np
 from vlmproprio.errors import VlmproprioError
 
 # atomic_write_* and sha256_file live in vlmproprio.io; importing them from here keeps working
-from vlmproprio.io import atomic_write_bytes, atomic_write_text, load_json, sha256_file
+from vlmproprio.io import JSONLoadError, atomic_write_bytes, atomic_write_text, load_json, sha256_file
 
 FORMAT_VERSION = 1
 TASKS = ("door", "pick_place", "lift")
@@ -315,10 +315,12 @@ def read_manifest(root: Path) -> dict[str, str]:
     if not path.is_file():
         raise EpisodeError(f"{path}: manifest missing (run `vlmproprio manifest {root}` after changing fixtures)")
     try:
-        data = load_json(path, error=EpisodeError)
+        data = load_json(path)
         files = data["files"]
         if not isinstance(files, dict):
             raise TypeError("'files' is not an object")
+    except JSONLoadError as exc:
+        raise EpisodeError(f"{path}: not a valid manifest ({exc.detail})") from exc
     except (ValueError, KeyError, TypeError) as exc:
         raise EpisodeError(f"{path}: not a valid manifest ({exc})") from exc
     return files
@@ -464,9 +466,11 @@ def load_episode(root: Path, episode_id: str, *, verify: bool = True, manifest: 
         verify_files(root, f"episodes/{episode_id}/", manifest)
     path = episode_dir / EPISODE_FILE
     try:
-        data = load_json(path, error=EpisodeError)
+        data = load_json(path)
     except FileNotFoundError as exc:
         raise EpisodeError(f"{path}: cannot read episode metadata (missing)") from exc
+    except JSONLoadError as exc:
+        raise EpisodeError(f"{path}: cannot read episode metadata ({exc.detail})") from exc
     if not isinstance(data, dict):
         raise EpisodeError(f"{path}: episode metadata must be a JSON object")
     episode = _parse_episode(episode_dir, data)

@@ -151,19 +151,27 @@ def loads_json(
     max_depth: int = MAX_JSON_DEPTH,
     error: type[VlmproprioError] = JSONLoadError,
 ):
-    """Parse one JSON document; ``error`` (one line naming ``where``) when malformed, too big or too deep."""
+    """Parse one JSON document; ``error`` (one line naming ``where``) when malformed, too big or too deep.
+
+    The error's ``detail`` attribute holds the message without ``where``, for callers that phrase their own."""
+
+    def fail(detail: str) -> VlmproprioError:
+        exc = error(f"{where}: {detail}")
+        exc.detail = detail  # type: ignore[attr-defined]
+        return exc
+
     if len(text) > max_bytes:
-        raise error(f"{where}: {len(text):,} bytes of JSON, more than the {max_bytes:,} allowed")
+        raise fail(f"{len(text):,} bytes of JSON, more than the {max_bytes:,} allowed")
     try:
         if isinstance(text, bytes):
             text = text.decode("utf-8")
         obj = json.loads(text)
     except RecursionError:
-        raise error(f"{where}: JSON nested too deeply (limit {max_depth} levels); the file is damaged") from None
+        raise fail(f"JSON nested too deeply (limit {max_depth} levels); the file is damaged") from None
     except (UnicodeDecodeError, ValueError) as exc:
-        raise error(f"{where}: not valid JSON ({exc})") from exc
+        raise fail(f"not valid JSON ({exc})") from exc
     if isinstance(obj, dict | list) and _too_deep(obj, max_depth):
-        raise error(f"{where}: JSON nested too deeply (limit {max_depth} levels); the file is damaged")
+        raise fail(f"JSON nested too deeply (limit {max_depth} levels); the file is damaged")
     return obj
 
 

@@ -213,8 +213,9 @@ def create_backend(name: str, mode: str = "live", settings: BackendSettings | No
             raise BackendError(f"no cassette for model {name!r} at {path}; " + _record_hint(name))
         from vlmproprio.episodes import check_fixture_file
 
-        check_fixture_file(path)  # against the fixtures' manifest, before any answer is used
-        return ReplayBackend(path, model=model_slug(name))
+        backend = ReplayBackend(path, model=model_slug(name))  # a damaged line: an error naming file and line
+        check_fixture_file(path)  # a line edited and re-checksummed: the manifest's sha256 differs
+        return backend
     if spec.backend == "hf":
         from vlmproprio.backends.hf import HFBackend
 
