@@ -142,10 +142,11 @@ class BenchSession:
         eps, conds = self.needed.get(model, (set(self.episodes), set(self.conditions)))
         order = {c: i for i, c in enumerate(self.conditions)}
         assert self.run_root is not None
-        run_dir = self.run_root / model_slug(model)
+        conditions = tuple(parse_conditions(sorted(conds, key=order.get)))
+        run_dir = _run_folder(self.run_root / model_slug(model), sorted(eps), [c.name for c in conditions])
         plan = RunPlan(
             models=(model,),
-            conditions=tuple(parse_conditions(sorted(conds, key=order.get))),
+            conditions=conditions,
             fixtures=self.fixtures,
             out=run_dir,
             episode_ids=tuple(sorted(eps)),
@@ -167,6 +168,21 @@ class BenchSession:
             episodes=tuple(sorted(eps)),
             conditions=tuple(sorted(conds, key=order.get)),
         )
+
+
+def _run_folder(run_dir: Path, episodes: list[str], conditions: list[str]) -> Path:
+    """``run_dir``, or a sibling named by a digest of the selection when a kept run (--run-dir) there holds
+    other episodes or conditions: a run folder holds one configuration and refuses another (issue 15)."""
+    import hashlib
+    import json
+
+    from vlmproprio.runner import read_run_file
+
+    old = read_run_file(run_dir) if run_dir.is_dir() else None
+    if old is None or (old.get("episodes"), old.get("conditions")) == (episodes, conditions):
+        return run_dir
+    digest = hashlib.sha256(json.dumps([episodes, conditions]).encode()).hexdigest()[:8]
+    return run_dir.with_name(f"{run_dir.name}-{digest}")
 
 
 def _session(config: pytest.Config) -> BenchSession:

@@ -103,3 +103,18 @@ def test_a_damaged_baseline_csv_is_one_line_naming_the_file(tmp_path, damage, fi
     problem = baseline_problem(path, columns)
     assert problem is not None and "\n" not in problem and str(path) in problem and "--force-regen" in problem
     figures("small items", cases=1, fixed=1)
+
+
+def test_plugin_keeps_runs_of_other_selections_apart(tmp_path, figures):
+    """`--run-dir` keeps runs: a second session selecting other cells must neither be refused nor mix its
+    transcripts into the first session's run folder."""
+    runs = tmp_path / "bench"
+    for k in ("door_00 and none", "door_01 and none"):
+        proc = _pytest("--model", "reference", "--run-dir", str(runs), "-k", k)
+        assert proc.returncode == 0, proc.stdout[-2000:]
+    folders = sorted(p.name for p in runs.iterdir())
+    assert len(folders) == 2 and folders[0] == "reference", folders
+    for f in folders:
+        names = sorted(p.name for p in (runs / f / "transcripts" / "reference").iterdir())
+        assert len(names) == 1 and names[0].endswith("__none.json"), names
+    figures("small items", cases=1, fixed=1)
