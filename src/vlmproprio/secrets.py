@@ -4,7 +4,7 @@
 
 * the value of every environment variable that holds a credential: ``OPENAI_API_KEY``, the variable named
   by ``--api-key-env`` (``register_secret_env``), and any variable whose name ends in KEY, TOKEN, SECRET,
-  PASSWORD or PASSWD (values of 8 characters or more, so ``PYTHONHASHSEED=0`` style values are never hit);
+  PASSWORD or PASSWD (values of 8 characters or more with a letter, so numbers in score tables are never hit);
 * credentials in URLs: ``scheme://user:password@host`` and ``?token=``, ``api_key=``, ``access_token=``,
   ``key=``, ``password=``, ``secret=``, ``sig=``, ``signature=`` query parameters;
 * ``Authorization:`` header values and ``Bearer <token>``.
@@ -48,8 +48,8 @@ def secret_values() -> list[str]:
     """The credential values present in the environment now, longest first."""
     out = set()
     for name, value in os.environ.items():
-        if not value or len(value.strip()) < MIN_SECRET_LEN:
-            continue
+        if not value or len(value.strip()) < MIN_SECRET_LEN or not any(c.isalpha() for c in value):
+            continue  # digits only (a seed, a port list) would mask numbers in score tables, and is no key
         if name in _ALWAYS or name in _registered or _SECRET_NAME.search(name):
             out.add(value)
             out.add(value.strip())
