@@ -105,6 +105,7 @@ def test_damage_behind_a_regenerated_manifest_is_caught(tmp_path, fixtures, dama
     env = cli_env(VLMPROPRIO_CACHE=str(tmp_path / "cache"))
     proc = cli(["run", *RUN_ARGS, "--fixtures", fixtures, "--out", tmp_path / "run", "--no-progress"], env=env)
     assert_one_line_error(proc, str(ep_dir))
+    assert_one_line_error(cli(["verify", "--fixtures", fixtures], env=env), str(ep_dir))  # verify checks it all
     with pytest.raises(EpisodeError):
         ep = load_episode(fixtures, "door_00")
         for f in ep.frames:
