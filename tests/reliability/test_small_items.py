@@ -74,7 +74,7 @@ def test_plugin_empty_episodes_is_a_usage_error(figures):
 def test_plugin_fails_a_named_model_that_cannot_run(figures):
     proc = _pytest("--model", "gpt-4o", "--episodes", "door_00", "--conditions", "none", "-k", "test_counts")
     assert proc.returncode == 1, proc.stdout[-2000:]  # not 0 with "all skipped"
-    assert "cannot run in replay mode" in proc.stdout and " skipped" not in proc.stdout.splitlines()[-1]
+    assert "gpt-4o cannot run in" in proc.stdout and " skipped" not in proc.stdout.splitlines()[-1]
     figures("small items", cases=1, fixed=1)
 
 
