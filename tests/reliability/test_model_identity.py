@@ -86,7 +86,7 @@ def test_two_colliding_models_recorded_into_one_run_and_fixtures_keep_both(tmp_p
     before = cassettes[a].read_bytes()
     proc = cli(
         [
-            *("cassette", "export", "--model", b, "--cache", tmp_path / "cache" / "responses"),
+            *("cassette", "export", "--model", b),  # the cache: $VLMPROPRIO_CACHE
             *("--out", cassettes[a], "--replace"),
         ],
         env=env,

@@ -107,7 +107,7 @@ def secret_run(tmp_path_factory):
             assert "rejected request with Authorization" in failed.stderr  # the echo came back ...
             other = vp(
                 *("run", *common[:-2], "--cache-dir", root / "work" / "cache-other", "--out", root / "work" / "run4"),
-                *("--api-key-env", "VLM_SERVER_CRED", "--max-new-tokens", "7"),
+                *("--api-key-env", "VLM_SERVER_CRED", "--max-new-tokens", "7", "--mode", "live"),
             )
             assert other.returncode != 0  # the server still fails every request: the errors echo the second key
             saw_key = [r.headers.get("authorization") for r in server.chat_requests]
@@ -115,7 +115,7 @@ def secret_run(tmp_path_factory):
         nowhere = f"http://vlmuser:{url_pass}@127.0.0.1:9/v1?token={url_token}&api_key={url_token}"
         unreachable = vp(
             *("run", "--model", MODEL, "--base-url", nowhere, "--fixtures", fixtures, "--episodes", "door_00"),
-            *("--conditions", "none", "--frame-stride", "3", "--no-progress", "--timeout", "1"),
+            *("--conditions", "none", "--frame-stride", "3", "--no-progress", "--timeout", "1", "--mode", "live"),
             *("--cache-dir", root / "work" / "cache-nowhere", "--out", root / "work" / "run5"),
             timeout=300,
         )

@@ -119,7 +119,7 @@ CASES = {
     "cassette export --out read-only": (
         lambda w: [
             *("cassette", "export", "--model", "reference"),
-            *("--cache", w / "cache" / "responses", "--out", w / "ro" / "ref.jsonl"),
+            *("--out", w / "ro" / "ref.jsonl"),  # the cache: $VLMPROPRIO_CACHE
         ],
         "ro",
         "readonly",
