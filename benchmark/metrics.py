@@ -68,3 +68,33 @@ def sweep_metrics(sweep: list[dict]) -> dict[str, list[float]]:
     cols = ("threshold", "p_tol1", "r_tol1", "f1_tol0", "f1_tol1", "f1_tol2", "edit", "f1_at_10", "f1_at_25")
     cols += ("f1_at_50", "frame_acc", "edit_unmerged")
     return {c: [_float(r[c]) for r in sweep] for c in cols}
+
+
+def baseline_problem(path: Path, columns: list[str] | None = None) -> str | None:
+    """Why a baseline file cannot be compared (one line naming it), or None when it can or does not exist yet
+    (pytest-regressions then writes it). A damaged file would otherwise end in a long pandas or YAML traceback
+    without the file's name."""
+    if not path.is_file():
+        return None
+    fix = f"restore it (`git checkout -- {path}`) or regenerate it with --force-regen"
+    try:
+        if path.suffix == ".csv":
+            import pandas as pd
+
+            frame = pd.read_csv(path, index_col=0)
+            if columns is not None and sorted(frame.columns) != sorted(columns):
+                return (
+                    f"{path}: damaged baseline (columns {list(frame.columns)[:4]}..., expected {columns[:4]}...); {fix}"
+                )
+            bad = [c for c in frame.columns if not pd.api.types.is_numeric_dtype(frame[c])]
+            if bad:
+                return f"{path}: damaged baseline (column {bad[0]!r} is not numeric); {fix}"
+        else:
+            import yaml
+
+            if not isinstance(yaml.safe_load(path.read_text(encoding="utf-8")), dict):
+                return f"{path}: damaged baseline (not a YAML mapping); {fix}"
+    except Exception as exc:  # any parser error: the point is one line naming the file
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+        return f"{path}: damaged baseline ({type(exc).__name__}: {first}); {fix}"
+    return None

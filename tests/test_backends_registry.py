@@ -45,11 +45,11 @@ def test_registry_has_the_models_the_paper_and_ci_need():
     [
         ("qwen2.5-vl", "qwen2.5-vl"),
         ("gpt-4v", "gpt-4v"),
-        ("hf:Qwen/Qwen2-VL-2B-Instruct", "hf_Qwen_Qwen2-VL-2B-Instruct"),
-        ("hf:/data/models/my ckpt/", "hf_my_ckpt"),
-        ("hf:./tiny", "hf_tiny"),
+        ("hf:Qwen/Qwen2-VL-2B-Instruct", "hf_Qwen_Qwen2-VL-2B-Instruct-f3c975da"),
+        ("hf:/data/models/my ckpt/", "hf_my_ckpt-05c69157"),
+        ("hf:./tiny", "hf_tiny-3db8843a"),
         ("openai:gpt-4o-mini", "openai_gpt-4o-mini"),
-        ("openai:meta-llama/Llama-3.2-11B-Vision", "openai_meta-llama_Llama-3.2-11B-Vision"),
+        ("openai:meta-llama/Llama-3.2-11B-Vision", "openai_meta-llama_Llama-3.2-11B-Vision-2e6296c9"),
     ],
 )
 def test_slugs_are_single_safe_components(name, slug, tmp_path):
@@ -65,6 +65,30 @@ def test_slugs_are_single_safe_components(name, slug, tmp_path):
 def test_unsafe_names_are_refused(name):
     with pytest.raises(ModelNameError):
         model_slug(name)
+
+
+# Pairs of different models whose readable names sanitise alike (issue 15, defect 2).
+COLLIDING = [
+    ("openai:org/m", "openai:org_m"),
+    ("hf:/ckpt/run1/checkpoint-500", "hf:/ckpt/run2/checkpoint-500"),
+    ("hf:org/name", "hf:org_name"),
+    ("openai:GPT-4o", "openai:gpt-4o"),  # one folder on a case-insensitive disk
+    ("openai:a b", "openai:a_b"),
+    ("openai:org_m-9e955f65", "openai:org/m"),  # a name that looks like another's digest suffix
+    ("hf:./tiny", "hf:/x/tiny"),
+]
+
+
+@pytest.mark.parametrize(("a", "b"), COLLIDING)
+def test_models_whose_names_sanitise_alike_get_different_folders(a, b):
+    sa, sb = model_slug(a), model_slug(b)
+    assert sa != sb and sa.lower() != sb.lower()
+
+
+def test_model_names_with_line_separators_are_refused():
+    for name in ("openai:gpt\u2028-4o", "openai:gpt\u2029x", "hf:a\u200bb"):
+        with pytest.raises(ModelNameError, match="unprintable"):
+            model_slug(name)
 
 
 def test_unknown_name_lists_the_registry():

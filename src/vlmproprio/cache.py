@@ -66,6 +66,8 @@ from typing import TYPE_CHECKING, Literal
 
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart, RequestTag
 from vlmproprio.errors import UsageError, VlmproprioError
+from vlmproprio.io import atomic_write_text, loads_json, write_error, writing
+from vlmproprio.secrets import scrub, scrub_obj
 
 if TYPE_CHECKING:  # type only: cache comes before backends in the stage order
     from vlmproprio.backends.base import Backend
@@ -275,8 +277,8 @@ class ResponseCache:
         self.directory = Path(directory)
         try:
             self.directory.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise CacheError(f"cannot create cache directory {self.directory}: {exc}") from exc
+        except OSError as exc:  # a file in the way, a read-only or full disk
+            raise write_error(self.directory, exc, "create cache directory") from exc
         self._cache = None
         # Opening runs schema setup (PRAGMAs, CREATE TABLE) that can collide with another process doing the same.
         deadline = time.monotonic() + timeout_s
@@ -294,6 +296,9 @@ class ResponseCache:
                 if "locked" not in str(exc) or time.monotonic() > deadline:
                     raise CacheError(f"cannot open cache {self.directory}: {exc}") from exc
                 time.sleep(0.05)
+            except OSError as exc:  # a read-only or full cache folder
+                with writing(self.directory, "open cache"):
+                    raise exc from None
 
     # -------------------------------------------------------------------------------- reading
     def get(self, key: str) -> CacheEntry | None:
@@ -347,14 +352,17 @@ class ResponseCache:
     # -------------------------------------------------------------------------------- writing
     def add(self, entry: CacheEntry) -> bool:
         """Store ``entry`` unless its key is present; True when this call stored it."""
-        return bool(self._cache.add(entry.key, entry.cache_record(), retry=True))
+        with writing(self.directory, "store an answer in cache"):  # "database or disk is full", read-only
+            return bool(self._cache.add(entry.key, entry.cache_record(), retry=True))
 
     def put(self, entry: CacheEntry) -> None:
         """Store ``entry``, replacing what is there (used to replace empty or corrupt entries)."""
-        self._cache.set(entry.key, entry.cache_record(), retry=True)
+        with writing(self.directory, "store an answer in cache"):
+            self._cache.set(entry.key, entry.cache_record(), retry=True)
 
     def delete(self, key: str) -> bool:
-        return bool(self._cache.delete(key, retry=True))
+        with writing(self.directory, "delete an entry of cache"):
+            return bool(self._cache.delete(key, retry=True))
 
     def store(self, entry: CacheEntry) -> bool:
         """Add ``entry``; an ``ok`` answer also replaces an ``empty`` one. True when something was written."""
@@ -423,10 +431,7 @@ def read_cassette(path: Path | str) -> Cassette:
         raise CassetteError(f"{path}:1: empty cassette (no header line)")
 
     def parse(lineno: int, data: bytes) -> dict:
-        try:
-            obj = json.loads(data.decode("utf-8"))
-        except (UnicodeDecodeError, ValueError) as exc:
-            raise CassetteError(f"{path}:{lineno}: not valid JSON ({exc}); the cassette is damaged") from exc
+        obj = loads_json(data, f"{path}:{lineno}", error=CassetteError)
         if not isinstance(obj, dict):
             raise CassetteError(f"{path}:{lineno}: expected a JSON object")
         return obj
@@ -464,20 +469,33 @@ def write_cassette(
 
     Merging into a cassette recorded from another identity is refused: one file, one model identity.
     """
-    from vlmproprio.episodes import atomic_write_text
-
     path = Path(path)
     ident = key_identity(identity)
     merged: dict[str, CacheEntry] = {}
-    if merge and path.exists():
-        old = read_cassette(path)
-        if old.identity != ident:
+    old = None
+    if path.exists():
+        try:
+            old = read_cassette(path)
+        except CassetteError:
+            if merge:
+                raise
+            # --replace over a damaged file: nothing readable to protect
+    if old is not None:
+        if old.model != model:
+            # never advise deleting it: that file holds another model's answers
             raise CassetteError(
-                f"{path}: recorded from {old.identity}, not {ident}; write to another file or pass merge=False "
-                "(cassette export --replace) to start it anew"
+                f"{path} holds the answers of another model ({old.model}), not of {model}; refusing to overwrite "
+                "it: write this cassette to another file (`vlmproprio cassette export --out FILE`)"
             )
-        merged.update(old.entries)
-    for e in entries:
+        if merge and old.identity != ident:
+            raise CassetteError(
+                f"{path}: recorded from {_describe(old.identity)}, not {_describe(ident)} ({len(old.entries)} answers "
+                f"of {model}); one cassette holds one identity: write this one to another file "
+                "(`vlmproprio cassette export --out FILE`)"
+            )
+        if merge:
+            merged.update(old.entries)
+    for e in map(scrubbed_entry, entries):
         old = merged.get(e.key)
         if old is None or (old.text, old.status) != (e.text, e.status):
             merged[e.key] = e  # an unchanged answer keeps its old line (and latency): re-recording diffs stay small
@@ -485,6 +503,16 @@ def write_cassette(
     lines += [canonical_json(merged[k].cassette_record()) for k in sorted(merged)]
     atomic_write_text(path, "\n".join(lines) + "\n")
     return path
+
+
+def _describe(identity: dict) -> str:
+    return ", ".join(f"{k} {v}" for k, v in identity.items() if v)
+
+
+def scrubbed_entry(entry: CacheEntry) -> CacheEntry:
+    """``entry`` with secrets masked in its answer text and metadata (unchanged when it holds none)."""
+    text, meta = scrub(entry.text), scrub_obj(entry.meta)
+    return entry if (text, meta) == (entry.text, entry.meta) else replace(entry, text=text, meta=meta)
 
 
 def export_cassette(cache: ResponseCache, model: str, path: Path | str, *, merge: bool = True) -> tuple[Path, int]:
@@ -632,7 +660,11 @@ class CachedBackend:
                 results[i] = self._keep(key, requests[i], ans)
 
     def _keep(self, key: str, request: ChatRequest, answer: Answer) -> Answer:
-        entry = CacheEntry.from_answer(key, answer, request.tag, self.model, self.identity)
+        # a server that echoes the API key in an answer must not get it into the cache, cassette or transcripts
+        text = scrub(answer.text)
+        if text != answer.text:
+            answer = replace(answer, text=text)
+        entry = scrubbed_entry(CacheEntry.from_answer(key, answer, request.tag, self.model, self.identity))
         if self.cache is not None and self.mode != "replay" and self.cache.store(entry):
             self.stats["stored"] += 1
         self._use(entry)

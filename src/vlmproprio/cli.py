@@ -341,7 +341,7 @@ def cmd_report(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from vlmproprio.episodes import atomic_write_text
+    from vlmproprio.io import atomic_write_text
     from vlmproprio.report import compare_runs
 
     kwargs = {}
@@ -866,13 +866,60 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _ScrubbingStream:
+    """A console stream that masks secrets (vlmproprio.secrets) in everything written to it."""
+
+    def __init__(self, stream) -> None:
+        self._stream = stream
+
+    def write(self, text: str) -> int:
+        from vlmproprio.secrets import scrub
+
+        self._stream.write(scrub(text) if isinstance(text, str) else text)
+        return len(text)
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
+def _scrub_log_records() -> None:
+    """Mask secrets in every log record (libraries' debug logs included) before any handler sees it."""
+    import logging
+
+    from vlmproprio.secrets import scrub
+
+    factory = logging.getLogRecordFactory()
+    if getattr(factory, "vlmproprio_scrubs", False):
+        return
+
+    def make(*args, **kwargs):
+        record = factory(*args, **kwargs)
+        try:
+            message = record.getMessage()
+        except Exception:  # a malformed log call: leave it to logging's own error handling
+            return record
+        clean = scrub(message)
+        if clean != message:
+            record.msg, record.args = clean, None
+        return record
+
+    make.vlmproprio_scrubs = True  # type: ignore[attr-defined]
+    logging.setLogRecordFactory(make)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    from vlmproprio.io import is_write_failure, write_error
+    from vlmproprio.secrets import scrub
+
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
     func: Callable[[argparse.Namespace], int] = args.func
+    out, err = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = _ScrubbingStream(out), _ScrubbingStream(err)
+    _scrub_log_records()
     try:
         return func(args)
     except KeyboardInterrupt:
@@ -882,10 +929,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout = None  # type: ignore[assignment]  # nothing more can be written
         return 0
     except Exception as exc:
+        if not isinstance(exc, VlmproprioError) and is_write_failure(exc):
+            # a write that did not go through vlmproprio.io (a library's own file): still one line
+            exc = write_error(getattr(exc, "filename", None) or "a file", exc)
         if args.debug or not isinstance(exc, VlmproprioError):
-            raise
-        print(f"vlmproprio: error: {exc}", file=sys.stderr)
+            import traceback
+
+            print(scrub(traceback.format_exc()), end="", file=sys.stderr)
+            return 1 if not isinstance(exc, VlmproprioError) else 2
+        print(f"vlmproprio: error: {scrub(str(exc))}", file=sys.stderr)
         return 2
+    finally:
+        for stream in (sys.stdout, sys.stderr):
+            stream.flush()
+        sys.stdout, sys.stderr = out, err
 
 
 if __name__ == "__main__":

@@ -316,7 +316,9 @@ class EmbeddingStore:
         for text, vec in vectors.items():
             if not isinstance(text, str) or not isinstance(vec, np.ndarray) or vec.ndim != 1:
                 raise EmbeddingError(f"embedding cache values are 1-d float vectors keyed by text, got {type(vec)}")
-        with self._cache.transact():
+        from vlmproprio.io import writing
+
+        with writing(self.directory, "store embeddings in cache"), self._cache.transact():
             for text, vec in vectors.items():
                 self._cache.set(text_key(encoder_key, text), np.ascontiguousarray(vec, dtype=VECTOR_DTYPE).tobytes())
 

@@ -38,6 +38,9 @@ import numpy as np
 
 from vlmproprio.errors import VlmproprioError
 
+# atomic_write_* and sha256_file live in vlmproprio.io; importing them from here keeps working
+from vlmproprio.io import JSONLoadError, atomic_write_bytes, atomic_write_text, load_json, sha256_file
+
 FORMAT_VERSION = 1
 TASKS = ("door", "pick_place", "lift")
 JOINT_DIM = 8
@@ -65,6 +68,10 @@ class EpisodeError(VlmproprioError):
     """An episode or fixture set that cannot be used; the message names the file and what is wrong."""
 
 
+# (sha256 of a PNG file's bytes + the pixel digest it must have) already checked in this process
+_PIXELS_VERIFIED: set[bytes] = set()
+
+
 @dataclass(frozen=True)
 class Frame:
     """One sampled frame: the image, the robot state at that moment and its ground truth."""
@@ -79,10 +86,12 @@ class Frame:
     direction: str
 
     def image_bytes(self) -> bytes:
-        """The PNG file as it is (what a model is sent); EpisodeError when it is not a whole PNG.
+        """The PNG file as it is (what a model is sent); EpisodeError when it is not a whole PNG or its
+        decoded pixels do not hash to the episode's ``pixel_sha256`` for this frame.
 
-        Only the signature and the closing IEND chunk are checked (no decoding): enough to catch a truncated or
-        foreign file that a regenerated manifest would otherwise bless, at no cost."""
+        The pixel check decodes the image (~2-3 ms per 256x256 frame on this project's CPU), once per file
+        content and process: a flipped pixel or two swapped frames are caught even after the manifest was
+        regenerated, and scoring, which sends no image, pays nothing."""
         try:
             data = self.image_path.read_bytes()
         except OSError as exc:
@@ -92,7 +101,27 @@ class Frame:
                 f"{self.image_path}: not a complete PNG file (truncated or damaged); restore it (git checkout) "
                 "or re-record the episode"
             )
+        self._check_pixels(data)
         return data
+
+    def _check_pixels(self, data: bytes) -> None:
+        seen = hashlib.sha256(data).digest() + self.image_sha256.encode()
+        if seen in _PIXELS_VERIFIED:
+            return
+        from PIL import Image
+
+        try:
+            with Image.open(io.BytesIO(data)) as im:
+                rgb = np.asarray(im.convert("RGB"))
+        except (OSError, SyntaxError, ValueError) as exc:
+            raise EpisodeError(f"{self.image_path}: cannot decode image ({exc})") from exc
+        if pixel_sha256(rgb) != self.image_sha256:
+            raise EpisodeError(
+                f"{self.image_path}: its pixels differ from frame {self.index}'s pixel_sha256 in "
+                f"{self.image_path.parent.parent / EPISODE_FILE} (image changed, damaged or swapped with another "
+                "frame); restore it (git checkout) or re-record the episode"
+            )
+        _PIXELS_VERIFIED.add(seen)
 
     def image_array(self) -> np.ndarray:
         """Decoded RGB pixels (H, W, 3) uint8."""
@@ -199,14 +228,6 @@ def standard_episode_ids() -> list[str]:
 # ---------------------------------------------------------------------------------------------- hashing
 
 
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def pixel_sha256(rgb: np.ndarray) -> str:
     """Hash of decoded pixels: equal images hash equal whatever PNG encoder wrote them."""
     arr = np.ascontiguousarray(rgb, dtype=np.uint8)
@@ -267,6 +288,28 @@ def register_fixture_file(path: Path) -> Path | None:
     return update_manifest(root, [path.relative_to(root).as_posix()])
 
 
+def check_fixture_file(path: Path) -> None:
+    """A file of a fixture set's sub-folder (a cassette in ``<fixtures>/responses/``) must be the one the
+    manifest above it lists: a line edited and re-checksummed is caught before replay uses it. Files outside
+    a fixture set (no manifest two levels up) are not checked."""
+    path = Path(path).resolve()
+    root = path.parent.parent
+    if not (root / MANIFEST_NAME).is_file():
+        return
+    rel = path.relative_to(root).as_posix()
+    files = read_manifest(root)
+    if rel not in files:
+        raise EpisodeError(
+            f"{path}: not in {root / MANIFEST_NAME}; a recording registers its cassette there (`vlmproprio run "
+            "--mode record` or `vlmproprio cassette export`)"
+        )
+    if sha256_file(path) != files[rel]:
+        raise EpisodeError(
+            f"{path}: sha256 differs from {root / MANIFEST_NAME} (changed after it was recorded); restore it "
+            f"(`git checkout -- {path}`) or record it again"
+        )
+
+
 def read_manifest(root: Path) -> dict[str, str]:
     path = Path(root) / MANIFEST_NAME
     if not path.is_file():
@@ -274,10 +317,12 @@ def read_manifest(root: Path) -> dict[str, str]:
             f"{path}: manifest missing (run `vlmproprio manifest --fixtures {root}` after changing fixtures)"
         )
     try:
-        data = json.loads(path.read_text())
+        data = load_json(path)
         files = data["files"]
         if not isinstance(files, dict):
             raise TypeError("'files' is not an object")
+    except JSONLoadError as exc:
+        raise EpisodeError(f"{path}: not a valid manifest ({exc.detail})") from exc
     except (ValueError, KeyError, TypeError) as exc:
         raise EpisodeError(f"{path}: not a valid manifest ({exc})") from exc
     return files
@@ -305,30 +350,6 @@ def verify_files(root: Path, prefix: str = "", manifest: dict[str, str] | None =
 
 
 # ---------------------------------------------------------------------------------------------- io helpers
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write via a temp file in the same folder and rename, so a reader never sees half a file."""
-    import os
-    import tempfile
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)  # mkstemp makes owner-only files; results are meant to be shared
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def write_steps(path: Path, states: StepStates) -> None:
@@ -447,15 +468,42 @@ def load_episode(root: Path, episode_id: str, *, verify: bool = True, manifest: 
         verify_files(root, f"episodes/{episode_id}/", manifest)
     path = episode_dir / EPISODE_FILE
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise EpisodeError(f"{path}: cannot read episode metadata ({exc})") from exc
+        data = load_json(path)
+    except FileNotFoundError as exc:
+        raise EpisodeError(f"{path}: cannot read episode metadata (missing)") from exc
+    except JSONLoadError as exc:
+        raise EpisodeError(f"{path}: cannot read episode metadata ({exc.detail})") from exc
     if not isinstance(data, dict):
         raise EpisodeError(f"{path}: episode metadata must be a JSON object")
     episode = _parse_episode(episode_dir, data)
     if episode.episode_id != episode_id:
         raise EpisodeError(f"{path}: episode_id {episode.episode_id!r} does not match its folder {episode_id!r}")
+    if verify:
+        check_steps(episode)
     return episode
+
+
+def check_steps(episode: Episode) -> None:
+    """steps.npz must agree with episode.json: one row per sim step, and at each sampled frame's step the
+    same joints, end-effector pose and phase. Reading and comparing costs ~3 ms per episode."""
+    path = episode.root / STEPS_FILE
+    if not path.is_file():  # an episode without full-rate states (the manifest says whether one is missing)
+        return
+    states = episode.step_states
+    n = len(states.step)
+    if n != episode.steps + 1 or not np.array_equal(states.step, np.arange(n)):
+        raise EpisodeError(f"{path}: {n} steps numbered {states.step[:1]}.., expected 0..{episode.steps}")
+    for f in episode.frames:
+        s = f.step
+        ok = 0 <= s < n and np.array_equal(states.joints[s], f.joints) and np.array_equal(states.ee[s], f.ee)
+        if ok:
+            p = int(states.phase[s])
+            ok = 0 <= p < len(episode.phase_names) and episode.phase_names[p] == f.phase
+        if not ok:
+            raise EpisodeError(
+                f"{path}: step {s} disagrees with frame {f.index} of {episode.root / EPISODE_FILE} (states or "
+                "phase differ: the file was changed or belongs to another episode); restore it or re-record"
+            )
 
 
 def list_episode_ids(root: Path) -> list[str]:

@@ -24,7 +24,9 @@ exists only in the sweep tables (and the report's sweep plot, marked optimistic)
 * ``audit.json``: per caption, every matched span with its verdict, and what was expected;
 * ``traces.json``: every similarity trace with its predicted and true boundaries;
 * ``meta.json``: encoder name, revision and key, lexicon versions and hashes, settings;
-* ``timing.json``: wall times and cache counts -- the only file that differs between repeated runs.
+* ``timing.json``: wall times and cache counts -- the only file that differs between repeated runs;
+* ``stamp.json``: the digest of exactly the transcripts, run configuration, ground truth, settings and code
+  version these scores come from, and the sha256 of every other file (one generation: see below).
 
 Given the same transcripts, fixtures and cached embeddings, every file but
 timing.json is byte-identical across runs, processes and machines.
@@ -44,8 +46,9 @@ from pathlib import Path
 import numpy as np
 
 from vlmproprio.embeddings import default_embedding_dir
-from vlmproprio.episodes import Episode, atomic_write_text, load_episodes
+from vlmproprio.episodes import Episode, load_episodes
 from vlmproprio.errors import VlmproprioError
+from vlmproprio.io import atomic_write_text, load_json
 from vlmproprio.scoring import ITEMS, CaptionScore, expectation_for, load_lexicon, score_text
 from vlmproprio.segmentation import (
     CHANCE_DRAWS,
@@ -67,7 +70,7 @@ from vlmproprio.segmentation import (
     truth_of,
 )
 from vlmproprio.stats import DEFAULT_N_BOOT, DEFAULT_N_PERM, DEFAULT_SEED, paired_difference
-from vlmproprio.transcripts import Transcript, read_transcripts
+from vlmproprio.transcripts import Transcript, read_transcript
 from vlmproprio.verdicts import ModelOutputs, load_claims, mark_families, sanity_warnings, verdicts
 
 SCORES_VERSION = 2
@@ -124,10 +127,7 @@ def _read_run_manifest(run_dir: Path) -> dict:
     path = run_dir / "run.json"
     if not path.is_file():
         return {}
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise ScoreRunError(f"{path}: cannot read run manifest ({exc})") from exc
+    data = load_json(path, error=ScoreRunError)
     if not isinstance(data, dict):
         raise ScoreRunError(f"{path}: run manifest must be a JSON object")
     return data
@@ -368,7 +368,8 @@ def score_run(
     if not run_dir.is_dir():
         raise ScoreRunError(f"{run_dir}: run directory not found")
     manifest = _read_run_manifest(run_dir)
-    transcripts = read_transcripts(run_dir)
+    transcript_files = run_transcript_files(run_dir, manifest)
+    transcripts = [read_transcript(p) for p in transcript_files]
     if not transcripts:
         raise ScoreRunError(
             f"{run_dir / 'transcripts'}: no transcripts (run `vlmproprio run --model NAME --out {run_dir}` first)"
@@ -389,6 +390,9 @@ def score_run(
         stored = [read_sidecar(p) for p in sidecars]
     spec = encoder if encoder is not None else resolve_encoder(stored)
     cache_dir = Path(embedding_cache) if embedding_cache is not None else default_embedding_dir()
+    from vlmproprio.runner import refuse_nesting
+
+    refuse_nesting(root, {"RUN_DIR": run_dir, "--embedding-cache": cache_dir})
     aligned = {}
     for t in transcripts:
         where = f"{run_dir}/transcripts/{t.model}/{t.episode_id}__{t.condition}.json"
@@ -572,7 +576,11 @@ def score_run(
         rows, aggregate, sweep_rows, sweep_aggregate, paired, audit, traces, meta, timing, judged, verdict_doc
     )
     if write:
-        write_score_tables(run_dir, tables)
+        score_settings = {k: meta[k] for k in ("encoder", "segmentation", "stats")} | {
+            "judge": judged["backend"] if judged else None
+        }
+        inputs = score_inputs(run_dir, manifest, transcript_files, root, ids, score_settings, meta["lexicons"])
+        write_score_tables(run_dir, tables, inputs)
     bar.update()
     bar.close()
     tables.timing["total_s"] = time.perf_counter() - t_start
@@ -798,8 +806,9 @@ def dumps_csv(rows: list[dict]) -> str:
     return buf.getvalue()
 
 
-def write_score_tables(run_dir: str | Path, tables: ScoreTables) -> list[Path]:
-    out = Path(run_dir) / "scores"
+def write_score_tables(run_dir: str | Path, tables: ScoreTables, inputs: dict | None = None) -> list[Path]:
+    """Write the tables as one generation of RUN_DIR/scores/ (see ``swap_in_generation``), stamped with
+    ``inputs`` (``score_inputs``: what they were computed from)."""
     files = {
         "rows.json": dumps_json(tables.rows),
         "rows.csv": dumps_csv(tables.rows),
@@ -819,8 +828,190 @@ def write_score_tables(run_dir: str | Path, tables: ScoreTables) -> list[Path]:
     }
     if tables.judge is not None:
         files["judge.json"] = dumps_json(tables.judge)
-    paths = []
-    for name, text in files.items():
-        atomic_write_text(out / name, text)
-        paths.append(out / name)
-    return paths
+    return swap_in_generation(Path(run_dir), files, inputs or {})
+
+
+# ---------------------------------------------------------------------------------------------- score generations
+#
+# RUN_DIR/scores/ is written as one generation: every file goes into a new hidden folder beside it, with
+# stamp.json (the digest of exactly the transcripts, run configuration, fixtures' ground truth, settings and
+# code version the scores come from, and the sha256 of each score file); the folder then replaces scores/ by
+# rename. A reader sees the old generation, the new one, or none -- never a mix -- and the report refuses
+# scores whose stamp no longer matches the run (``check_scores``).
+
+STAMP_FILE = "stamp.json"
+GENERATION_PREFIX = ".scores-"  # .scores-new-*, .scores-old-*: removed by the next score of the run
+
+
+class StaleScoresError(ScoreRunError):
+    """Scores that do not match the run they sit in; the message says how to re-score."""
+
+
+def _digest(obj) -> str:
+    import hashlib
+
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode("utf-8")).hexdigest()
+
+
+def run_transcript_files(run_dir: Path, manifest: dict) -> list[Path]:
+    """Exactly the transcripts of the configuration recorded in run.json; a one-line error when some are
+    missing (an unfinished run) or when others lie there (left by an older run). Without run.json, or with one
+    that lists no models: every transcript in the folder."""
+    from vlmproprio.runner import recorded_transcripts
+
+    root = run_dir / "transcripts"
+    on_disk = sorted(root.glob("*/*.json"))
+    expected = recorded_transcripts(run_dir, manifest)
+    if expected is None:
+        return on_disk
+    missing = [p for p in expected if not p.is_file()]
+    if missing:
+        raise ScoreRunError(
+            f"{run_dir}: the run recorded in run.json is not finished ({len(missing)} of {len(expected)} "
+            f"transcripts missing, e.g. {missing[0].relative_to(run_dir)}); finish it by running the same "
+            "`vlmproprio run` command again (answers already made are cached)"
+        )
+    extra = sorted(set(on_disk) - set(expected))
+    if extra:
+        raise ScoreRunError(
+            f"{extra[0]}: not part of the run recorded in {run_dir / 'run.json'} ({len(extra)} such transcript(s), "
+            "left by another run); move them out of the run folder, or run into a new --out"
+        )
+    return expected
+
+
+def run_configuration(manifest: dict) -> dict:
+    """The part of run.json that decides what the transcripts are (not status, times, counts or versions)."""
+    models = [
+        {k: m.get(k) for k in ("name", "slug", "pipeline")} for m in manifest.get("models", []) if isinstance(m, dict)
+    ]
+    return {"episodes": manifest.get("episodes"), "conditions": manifest.get("conditions"), "models": models}
+
+
+def code_version() -> dict:
+    from vlmproprio import __version__
+
+    return {"vlmproprio": __version__, "scores_version": SCORES_VERSION}
+
+
+def transcripts_digest(run_dir: Path, files: Sequence[Path]) -> str:
+    """The digest of what the transcripts say, leaving out how it was obtained (``requests``: cache hits and
+    latencies; ``timing``), which a resumed or repeated run changes without changing a word."""
+    from vlmproprio.io import load_json
+
+    said = {}
+    for p in files:
+        d = load_json(p, error=ScoreRunError)
+        said[p.relative_to(run_dir).as_posix()] = (
+            {k: v for k, v in d.items() if k not in ("requests", "timing")} if isinstance(d, dict) else d
+        )
+    return _digest(said)
+
+
+def score_inputs(
+    run_dir: Path, manifest: dict, files: Sequence[Path], fixtures: Path, episode_ids, settings: dict, lexicons: dict
+) -> dict:
+    """What a generation of scores is computed from, each part as a digest, and their digest (the stamp)."""
+    from vlmproprio.episodes import read_manifest
+
+    try:
+        fixture_files = read_manifest(fixtures)
+        truth = {e: fixture_files.get(f"episodes/{e}/episode.json") for e in episode_ids}
+    except VlmproprioError:  # scored with verify=False on fixtures without a manifest
+        truth = {}
+    parts = {
+        "transcripts": transcripts_digest(run_dir, files),
+        "run_configuration": _digest(run_configuration(manifest)),
+        "ground_truth": _digest(truth),
+        "settings": _digest(settings),
+        "lexicons": _digest(lexicons),
+        "code": code_version(),
+    }
+    return {"stamp": _digest(parts), "inputs": parts}
+
+
+def _remove_leftovers(run_dir: Path) -> None:
+    import shutil
+
+    for p in run_dir.glob(GENERATION_PREFIX + "*"):
+        shutil.rmtree(p, ignore_errors=True)
+
+
+def swap_in_generation(run_dir: Path, files: dict[str, str], inputs: dict) -> list[Path]:
+    """Write ``files`` (name -> text) and stamp.json into a new folder and swap it in for RUN_DIR/scores/."""
+    import os
+    import shutil
+    import uuid
+
+    from vlmproprio.io import WriteError, writing
+
+    _remove_leftovers(run_dir)  # a score killed before its swap left these
+    tag = f"{os.getpid()}-{uuid.uuid4().hex[:8]}"
+    new, old, out = (
+        run_dir / f"{GENERATION_PREFIX}new-{tag}",
+        run_dir / f"{GENERATION_PREFIX}old-{tag}",
+        run_dir / "scores",
+    )
+    try:
+        with writing(out, "write scores into"):
+            new.mkdir(parents=True)
+        try:
+            written = {name: atomic_write_text(new / name, text) for name, text in files.items()}
+        except WriteError as exc:  # name the folder the user knows, not the hidden one
+            raise WriteError(str(exc).replace(str(new), str(out))) from exc.__cause__
+        # timing.json differs between runs by nature: leaving it out keeps stamp.json byte-identical too
+        stamp = {**inputs, "files": {k: v for k, v in sorted(written.items()) if k != "timing.json"}}
+        atomic_write_text(new / STAMP_FILE, dumps_json(stamp))
+        with writing(out, "replace"):
+            if out.exists():
+                out.rename(old)
+            new.rename(out)
+    except BaseException:
+        shutil.rmtree(new, ignore_errors=True)
+        if old.exists() and not out.exists():
+            old.rename(out)  # put the previous generation back
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+    return [out / name for name in files]
+
+
+def check_scores(run_dir: str | Path, names: Sequence[str] = ()) -> dict:
+    """The stamp of RUN_DIR/scores/ after checking it still matches the run: the same transcripts, run
+    configuration and code version, and score files ``names`` (default: all) as they were written.
+    StaleScoresError, naming the command that fixes it, otherwise."""
+    from vlmproprio.io import load_json, sha256_file
+
+    run_dir = Path(run_dir)
+    out = run_dir / "scores"
+    fix = f"re-score the run: `vlmproprio score {run_dir}`"
+    try:
+        stamp = load_json(out / STAMP_FILE, error=StaleScoresError)
+    except FileNotFoundError:
+        raise StaleScoresError(
+            f"{out}: scores are out of date: no {STAMP_FILE} (scores from an older version or incomplete); {fix}"
+        ) from None
+    if not isinstance(stamp, dict) or not isinstance(stamp.get("inputs"), dict):
+        raise StaleScoresError(f"{out / STAMP_FILE}: scores are out of date: not a score stamp; {fix}")
+    recorded, files = stamp["inputs"], stamp.get("files", {})
+    if recorded.get("code") != code_version():
+        raise StaleScoresError(
+            f"{out}: scores are out of date: scored by {recorded.get('code')}, this is {code_version()}; {fix}"
+        )
+    manifest = _read_run_manifest(run_dir)
+    try:
+        current = run_transcript_files(run_dir, manifest)
+    except ScoreRunError as exc:
+        raise StaleScoresError(f"{out}: scores are out of date: the run no longer matches them ({exc})") from None
+    if recorded.get("run_configuration") != _digest(run_configuration(manifest)):
+        raise StaleScoresError(
+            f"{out}: scores are out of date: run.json records another configuration than the one scored; {fix}"
+        )
+    if recorded.get("transcripts") != transcripts_digest(run_dir, current):
+        raise StaleScoresError(f"{out}: scores are out of date: transcripts changed since the run was scored; {fix}")
+    for name in names or list(files):
+        path = out / name
+        if name not in files or not path.is_file() or sha256_file(path) != files[name]:
+            raise StaleScoresError(
+                f"{path}: scores are out of date: not the file of this generation of scores (changed or mixed); {fix}"
+            )
+    return stamp

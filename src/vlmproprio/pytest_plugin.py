@@ -88,7 +88,7 @@ def pytest_configure(config: pytest.Config) -> None:
     # line), but only when given.
     if (
         option(config, "model")
-        or option(config, "episodes")
+        or option(config, "episodes") is not None
         or option(config, "conditions")
         or option(config, "fixtures-dir")
     ):
@@ -172,7 +172,9 @@ class BenchSession:
 
                 if not isinstance(exc, VlmproprioError):
                     raise
-                self.failures[model] = f"{model}: {exc}"
+                from vlmproprio.secrets import scrub
+
+                self.failures[model] = scrub(f"{model}: {exc}")
                 pytest.fail(self.failures[model], pytrace=False)
         return self.results[model]
 
@@ -185,10 +187,11 @@ class BenchSession:
         eps, conds = self.needed.get(model, (set(self.episodes), set(self.conditions)))
         order = {c: i for i, c in enumerate(self.conditions)}
         assert self.run_root is not None
-        run_dir = self.run_root / model_slug(model)
+        conditions = tuple(parse_conditions(sorted(conds, key=order.get)))
+        run_dir = _run_folder(self.run_root / model_slug(model), sorted(eps), [c.name for c in conditions])
         plan = RunPlan(
             models=(model,),
-            conditions=tuple(parse_conditions(sorted(conds, key=order.get))),
+            conditions=conditions,
             fixtures=self.fixtures,
             out=run_dir,
             episode_ids=tuple(sorted(eps)),
@@ -212,6 +215,21 @@ class BenchSession:
         )
 
 
+def _run_folder(run_dir: Path, episodes: list[str], conditions: list[str]) -> Path:
+    """``run_dir``, or a sibling named by a digest of the selection when a kept run (--run-dir) there holds
+    other episodes or conditions: a run folder holds one configuration and refuses another (issue 15)."""
+    import hashlib
+    import json
+
+    from vlmproprio.runner import read_run_file
+
+    old = read_run_file(run_dir) if run_dir.is_dir() else None
+    if old is None or (old.get("episodes"), old.get("conditions")) == (episodes, conditions):
+        return run_dir
+    digest = hashlib.sha256(json.dumps([episodes, conditions]).encode()).hexdigest()[:8]
+    return run_dir.with_name(f"{run_dir.name}-{digest}")
+
+
 def _session(config: pytest.Config) -> BenchSession:
     existing = config.stash.get(BENCH_KEY, None)
     if existing is not None:
@@ -229,7 +247,10 @@ def _session(config: pytest.Config) -> BenchSession:
         fixtures = resolve_fixtures(explicit)
     except VlmproprioError as exc:
         raise pytest.UsageError(f"--fixtures-dir: {exc}") from None
-    episodes = tuple(split_list(option(config, "episodes")))
+    episodes_opt = option(config, "episodes")
+    episodes = tuple(split_list(episodes_opt))
+    if episodes_opt is not None and not episodes:  # `--episodes ""` (an empty shell variable) is not "all"
+        raise pytest.UsageError("--episodes: no episode ids given; name some (comma separated) or leave it out for all")
     if not episodes:
         episodes = tuple(list_episode_ids(fixtures))
     if not episodes:  # no cells to parametrise: pytest would crash (INTERNALERROR) on the empty parameter list
@@ -294,7 +315,11 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
 def _skip_unavailable(s: BenchSession, model: str) -> None:
     avail = s.availability(model)
     if not avail:
-        pytest.skip(f"{model} cannot run in {s.mode} mode here: {avail.reason}")
+        message = f"{model} cannot run in {s.mode} mode here: {avail.reason}"
+        if option(s.config, "model"):
+            # asked for by name: a benchmark of a model that cannot run is a failure, not "all skipped", exit 0
+            pytest.fail(message, pytrace=False)
+        pytest.skip(message)
 
 
 @dataclass(frozen=True)

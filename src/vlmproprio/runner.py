@@ -22,8 +22,9 @@ from pathlib import Path
 from urllib.parse import urlsplit, urlunsplit
 
 from vlmproprio.conditions import Condition
-from vlmproprio.episodes import Episode, atomic_write_text, load_episodes, register_fixture_file
+from vlmproprio.episodes import Episode, load_episodes, register_fixture_file
 from vlmproprio.errors import UsageError
+from vlmproprio.io import atomic_write_text
 from vlmproprio.pipeline import PipelineSettings, answer_chunk, calls_per_episode, caption_episodes
 from vlmproprio.transcripts import Transcript, write_transcript
 
@@ -99,11 +100,29 @@ def _public_url(url: str | None) -> str | None:
 
 def _backend_settings_record(settings) -> dict:
     d = {k: v for k, v in asdict(settings).items() if k not in ("extra", "home", "cassette_dir")}
-    d["base_url"] = _public_url(d.get("base_url"))
+    d["base_url"] = _public_url(d.get("base_url"))  # and every text written is scrubbed (vlmproprio.io)
     return {k: (str(v) if isinstance(v, Path) else v) for k, v in d.items()}
 
 
-def _write_run_file(plan: RunPlan, episodes: list[Episode], runs: list[ModelRun], status: str, settings) -> None:
+def _model_record(r: ModelRun) -> dict:
+    return {
+        "name": r.name,
+        "slug": r.slug,
+        "mode": r.mode,
+        "pipeline": r.pipeline,
+        "identity": r.identity,
+        "stats": r.stats,
+        "cassette": r.cassette,
+        "transcripts": len(r.transcripts),
+    }
+
+
+def _write_run_file(
+    plan: RunPlan, episodes: list[Episode], runs: list[ModelRun], status: str, settings, earlier: list[dict]
+) -> None:
+    """run.json; ``earlier``: the models a previous run put into this folder and this run does not redo."""
+    redone = {r.slug for r in runs}
+    models = [m for m in earlier if m.get("slug") not in redone] + [_model_record(r) for r in runs]
     doc = {
         "run_version": RUN_VERSION,
         "status": status,
@@ -112,19 +131,7 @@ def _write_run_file(plan: RunPlan, episodes: list[Episode], runs: list[ModelRun]
         "fixtures": str(plan.fixtures.resolve()),
         "episodes": [e.episode_id for e in episodes],
         "conditions": [c.name for c in plan.conditions],
-        "models": [
-            {
-                "name": r.name,
-                "slug": r.slug,
-                "mode": r.mode,
-                "pipeline": r.pipeline,
-                "identity": r.identity,
-                "stats": r.stats,
-                "cassette": r.cassette,
-                "transcripts": len(r.transcripts),
-            }
-            for r in runs
-        ],
+        "models": models,
         "backend_settings": _backend_settings_record(settings),
         "calls_per_episode_condition": {
             e.episode_id: calls_per_episode(len(e.frames), plan.pipeline.k) for e in episodes
@@ -174,12 +181,114 @@ def run_model(name: str, plan: RunPlan, episodes: list[Episode], peers: list[Epi
             cache.close()
 
 
+# ---------------------------------------------------------------------------------------------- run folders
+
+
+def read_run_file(run_dir: Path) -> dict | None:
+    """RUN_DIR/run.json as a dict, None when there is none; a one-line error when it is damaged."""
+    from vlmproprio.errors import VlmproprioError
+    from vlmproprio.io import load_json
+
+    path = Path(run_dir) / RUN_FILE
+    if not path.is_file():
+        return None
+    data = load_json(path, error=VlmproprioError)
+    if not isinstance(data, dict):
+        raise VlmproprioError(f"{path}: run.json must be a JSON object")
+    return data
+
+
+def _inside(a: Path, b: Path) -> bool:
+    a, b = a.resolve(), b.resolve()
+    return a == b or b in a.parents
+
+
+def refuse_nesting(fixtures: Path, folders: dict[str, Path | None]) -> None:
+    """Refuse an output or cache folder (``folders``: option name -> folder) inside the fixtures, where the
+    manifest would see extra files and every later run fail, and the fixtures inside one of them."""
+    fixtures = Path(fixtures)
+    for flag, folder in folders.items():
+        if folder is None:
+            continue
+        if _inside(Path(folder), fixtures):
+            raise UsageError(
+                f"{flag} {folder} is inside the fixture folder {fixtures}; fixtures hold frozen data only "
+                f"(its manifest would see new files): choose a {flag} outside it"
+            )
+        if _inside(fixtures, Path(folder)):
+            raise UsageError(f"the fixture folder {fixtures} is inside {flag} {folder}; choose a {flag} beside it")
+
+
+def _differences(old: dict, new: dict) -> list[str]:
+    keys = sorted(set(old) | set(new))
+    return [f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in keys if old.get(k) != new.get(k)]
+
+
+def check_run_folder(plan: RunPlan, episodes: list[Episode]) -> list[dict]:
+    """Whether this run may write into ``plan.out``; returns the model records of an earlier run there.
+
+    A run folder records its configuration (run.json). Running into it again with the same fixtures, episodes,
+    conditions and per-model settings resumes or redoes it; another model with those settings is added to it.
+    Anything else is refused in one line: the folder would otherwise mix transcripts of two configurations."""
+    from vlmproprio.backends.registry import model_slug
+
+    out = Path(plan.out)
+    old = read_run_file(out)
+    where = out / RUN_FILE
+    fix = "choose another --out (nothing in " + str(out) + " is changed)"
+    if old is None:
+        if any((out / "transcripts").glob("*/*.json")):
+            raise UsageError(f"{out} holds transcripts but no {RUN_FILE} (their configuration is unknown); {fix}")
+        return []
+    if old.get("fixtures") and Path(old["fixtures"]).resolve() != Path(plan.fixtures).resolve():
+        raise UsageError(f"{where} is a run on fixtures {old['fixtures']}, not {Path(plan.fixtures).resolve()}; {fix}")
+    want = {"episodes": [e.episode_id for e in episodes], "conditions": [c.name for c in plan.conditions]}
+    for field_name, value in want.items():
+        if field_name in old and old[field_name] != value:
+            diff = _differences({"": old[field_name]}, {"": value})[0].strip()
+            raise UsageError(f"{where} is a run of other {field_name} ({diff}); {fix}")
+    earlier = [m for m in old.get("models", []) if isinstance(m, dict)]
+    by_slug = {m.get("slug"): m for m in earlier}
+    for name in plan.models:
+        m = by_slug.get(model_slug(name))
+        if m is None:
+            continue
+        if m.get("name") != name:
+            raise UsageError(
+                f"{where}: model {name!r} would share the folder transcripts/{model_slug(name)} with model "
+                f"{m.get('name')!r} already there; {fix}"
+            )
+        if isinstance(m.get("pipeline"), dict) and m["pipeline"] != plan.pipeline_for(name).to_dict():
+            diff = "; ".join(_differences(m["pipeline"], plan.pipeline_for(name).to_dict()))
+            raise UsageError(f"{where}: model {name!r} ran there with other settings ({diff}); {fix}")
+    return earlier
+
+
+def recorded_transcripts(run_dir: Path, run_file: dict) -> list[Path] | None:
+    """The transcript files the run recorded in run.json must have (model slug x episode x condition), or None
+    for a run.json that does not say (written by hand or by another tool)."""
+    from vlmproprio.transcripts import transcript_filename
+
+    episodes, conditions = run_file.get("episodes"), run_file.get("conditions")
+    models = [m.get("slug") for m in run_file.get("models", []) if isinstance(m, dict)]
+    if not (isinstance(episodes, list) and isinstance(conditions, list) and models and all(models)):
+        return None
+    root = Path(run_dir) / "transcripts"
+    return [root / m / transcript_filename(e, c) for m in models for e in episodes for c in conditions]
+
+
 def run(plan: RunPlan) -> list[ModelRun]:
     """Caption every (episode, condition) with every model; write transcripts and run.json."""
     from vlmproprio.backends.registry import BackendSettings, model_slug
 
+    slugs: dict[str, str] = {}
     for name in plan.models:
-        model_slug(name)  # refuse unsafe or unknown names before any work
+        slug = model_slug(name)  # refuse unsafe or unknown names before any work
+        if slugs.setdefault(slug, name) != name:
+            raise UsageError(f"models {slugs[slug]!r} and {name!r} would share the folder transcripts/{slug}")
+    from vlmproprio.cache import default_cache_dir
+
+    refuse_nesting(Path(plan.fixtures), {"--out": plan.out, "--cache-dir": plan.cache_dir or default_cache_dir()})
     settings = plan.backend or BackendSettings()
     settings = BackendSettings(**{**asdict(settings), "cassette_dir": Path(plan.fixtures) / "responses"})
     peers = load_episodes(plan.fixtures)  # verifies every episode; both_shuffled may borrow from any of them
@@ -191,6 +300,7 @@ def run(plan: RunPlan) -> list[ModelRun]:
         if missing:
             raise UsageError(f"unknown episode(s) {', '.join(missing)} in {plan.fixtures}; known: {', '.join(by_id)}")
         episodes = [by_id[eid] for eid in plan.episode_ids]
+    earlier = check_run_folder(plan, episodes)
     try:
         plan.out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:  # a file in the way, no permission: the user's --out, not a bug
@@ -198,9 +308,9 @@ def run(plan: RunPlan) -> list[ModelRun]:
             f"cannot create run directory {plan.out}: {exc.strerror or exc}; choose another --out"
         ) from exc
     runs: list[ModelRun] = []
-    _write_run_file(plan, episodes, runs, "running", settings)
+    _write_run_file(plan, episodes, runs, "running", settings, earlier)
     for name in plan.models:
         runs.append(run_model(name, plan, episodes, peers, settings))
-        _write_run_file(plan, episodes, runs, "running", settings)
-    _write_run_file(plan, episodes, runs, "complete", settings)
+        _write_run_file(plan, episodes, runs, "running", settings, earlier)
+    _write_run_file(plan, episodes, runs, "complete", settings, earlier)
     return runs

@@ -1,11 +1,12 @@
-"""A per-task summary of a fixture set, after verifying every file against the manifest."""
+"""A per-task summary of a fixture set, after verifying every file against the manifest, every steps.npz against
+its episode.json and every frame's pixels against its pixel_sha256."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
 
-from vlmproprio.episodes import load_episodes, read_manifest, verify_files
+from vlmproprio.episodes import check_steps, load_episodes, read_manifest, verify_files
 
 
 @dataclass(frozen=True)
@@ -26,6 +27,7 @@ class FixtureSummary:
     files_verified: int
     tasks: list[TaskSummary]
     episodes_mb: float
+    frames_verified: int = 0
 
 
 def fixture_summary(root: Path) -> FixtureSummary:
@@ -33,6 +35,11 @@ def fixture_summary(root: Path) -> FixtureSummary:
     manifest = read_manifest(root)
     checked = verify_files(root, "", manifest)
     episodes = load_episodes(root, verify=False)  # every file was just verified
+    # what a regenerated manifest would bless: a steps.npz or a frame swapped in from elsewhere, a flipped pixel
+    for e in episodes:
+        check_steps(e)
+        for f in e.frames:
+            f.image_bytes()
     tasks = []
     for task in sorted({e.task for e in episodes}):
         eps = [e for e in episodes if e.task == task]
@@ -51,11 +58,15 @@ def fixture_summary(root: Path) -> FixtureSummary:
                 mb=size / 1e6,
             )
         )
-    return FixtureSummary(root, checked, tasks, sum(t.mb for t in tasks))
+    n_frames = sum(len(e.frames) for e in episodes)
+    return FixtureSummary(root, checked, tasks, sum(t.mb for t in tasks), n_frames)
 
 
 def format_summary(s: FixtureSummary) -> str:
-    lines = [f"{s.root}: {s.files_verified} files match {s.root / 'manifest.json'}"]
+    lines = [
+        f"{s.root}: {s.files_verified} files match {s.root / 'manifest.json'}; steps.npz and the pixels of "
+        f"{s.frames_verified} frames match their episode.json"
+    ]
     lines.append(f"{'task':<12}{'episodes':>9}{'frames':>8}{'frames/ep':>10}{'mean steps':>11}{'min-max':>10}{'MB':>7}")
     for t in s.tasks:
         lines.append(

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Literal
 
 from vlmproprio.errors import VlmproprioError
+from vlmproprio.io import atomic_write_text, load_json
 
 ParseStatus = Literal["ok", "recovered", "missing"]
 PARSE_STATUSES: tuple[str, ...] = ("ok", "recovered", "missing")
@@ -86,8 +87,6 @@ def transcript_filename(episode_id: str, condition: str) -> str:
 
 
 def write_transcript(run_dir: Path, t: Transcript) -> Path:
-    from vlmproprio.episodes import atomic_write_text
-
     path = Path(run_dir) / "transcripts" / t.model / transcript_filename(t.episode_id, t.condition)
     atomic_write_text(path, json.dumps(t.to_dict(), indent=1, ensure_ascii=False) + "\n")
     return path
@@ -95,7 +94,9 @@ def write_transcript(run_dir: Path, t: Transcript) -> Path:
 
 def read_transcript(path: Path) -> Transcript:
     try:
-        d = json.loads(Path(path).read_text(encoding="utf-8"))
+        d = load_json(path, error=TranscriptError)
+        if not isinstance(d, dict):
+            raise TypeError("a transcript is a JSON object")
         if d.get("version") != TRANSCRIPT_VERSION:
             raise ValueError(f"version {d.get('version')!r}, expected {TRANSCRIPT_VERSION}")
         return Transcript.from_dict(d)

@@ -183,7 +183,9 @@ def test_a_damaged_cassette_line_stops_a_replay_with_one_line(recorded_fixtures,
     original = path.read_bytes()
     lines = original.decode().splitlines()
     rec = json.loads(lines[3])
-    rec["text"] = rec["text"].replace("gripper", "griper")  # a plausible change, its checksum kept
+    edited = rec["text"].replace("the", "a", 1) if "the" in rec["text"] else rec["text"] + "."
+    assert edited != rec["text"]
+    rec["text"] = edited  # a plausible change, its checksum kept
     lines[3] = json.dumps(rec, sort_keys=True, separators=(",", ":"), ensure_ascii=False)
     path.write_text("\n".join(lines) + "\n")
     args = ["run", "--model", MODEL, "--mode", "replay", "--fixtures", recorded_fixtures, "--episodes", "door_00"]

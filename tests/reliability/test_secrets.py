@@ -41,9 +41,17 @@ def _echoing_handler(make_handler):
 
         class Echoing(base):
             def _send_json(self, status, payload, headers=None):
+                auth = self.headers.get("Authorization", "")
                 if status >= 400:
-                    auth = self.headers.get("Authorization", "")
                     payload = {"error": {"message": f"rejected request with Authorization: {auth}", "type": "x"}}
+                elif isinstance(payload, dict) and payload.get("choices"):
+                    # a normal answer that quotes the request's headers (issue 15: it reached the cassette)
+                    message = payload["choices"][0]["message"]
+                    token = auth.split()[-1] if auth else ""
+                    message["content"] = (
+                        f"{message['content']} [debug: Authorization: {auth}; token {token}; "
+                        f"url https://u:{token}@example.org/v1?token={token}]"
+                    )
                 super()._send_json(status, payload, headers)
 
         return Echoing
@@ -56,6 +64,9 @@ def secret_run(tmp_path_factory):
     """Every artefact of a recorded, cached, failed, exported and scored session, plus all its console output."""
     root = tmp_path_factory.mktemp("secrets")
     key = "sk-planted-" + secrets.token_hex(24)
+    # a second key under a variable name the scrubber only knows from --api-key-env, and URL credentials
+    other_key = "planted2-" + secrets.token_hex(20)
+    url_pass, url_token = "urlpass-" + secrets.token_hex(12), "urltoken-" + secrets.token_hex(12)
     fixtures = fixture_subset(root / "fixtures", ["door_00"])
     for d in ("work", "home", "tmp"):
         (root / d).mkdir()
@@ -65,6 +76,7 @@ def secret_run(tmp_path_factory):
         HOME=str(root / "home"),
         TMPDIR=str(root / "tmp"),
         VLMPROPRIO_CACHE=str(root / "work" / "cache-root"),
+        VLM_SERVER_CRED=other_key,
     )
     run_dir, cache = root / "work" / "run", root / "work" / "cache"
     outputs: list[str] = []
@@ -101,20 +113,46 @@ def secret_run(tmp_path_factory):
             )
             assert failed.returncode != 0 and "Traceback" in failed.stderr  # --debug: the full traceback
             assert "rejected request with Authorization" in failed.stderr  # the echo came back ...
+            other = vp(
+                *("run", *common[:-2], "--cache-dir", root / "work" / "cache-other", "--out", root / "work" / "run4"),
+                *("--api-key-env", "VLM_SERVER_CRED", "--max-new-tokens", "7", "--mode", "live"),
+            )
+            assert other.returncode != 0  # the server still fails every request: the errors echo the second key
             saw_key = [r.headers.get("authorization") for r in server.chat_requests]
+        # credentials in the server URL, on a port where nothing listens: the error line names the server
+        nowhere = f"http://vlmuser:{url_pass}@127.0.0.1:9/v1?token={url_token}&api_key={url_token}"
+        unreachable = vp(
+            *("run", "--model", MODEL, "--base-url", nowhere, "--fixtures", fixtures, "--episodes", "door_00"),
+            *("--conditions", "none", "--frame-stride", "3", "--no-progress", "--timeout", "1", "--mode", "live"),
+            *("--cache-dir", root / "work" / "cache-nowhere", "--out", root / "work" / "run5"),
+            timeout=300,
+        )
+        assert unreachable.returncode != 0
         exported = vp("cassette", "export", "--model", MODEL, "--cache", cache, "--out", root / "work" / "export.jsonl")
         assert exported.returncode == 0, exported.stderr[-3000:]
         scored = vp("score", run_dir, "--embedding-cache", root / "work" / "embeddings", timeout=600)
         assert scored.returncode == 0, scored.stderr[-3000:]
     finally:
         monkeypatch.undo()
-    return {"root": root, "key": key, "run_dir": run_dir, "outputs": outputs, "saw_key": saw_key, "env": env}
+    return {
+        "root": root,
+        "key": key,
+        "others": [other_key, url_pass, url_token],
+        "run_dir": run_dir,
+        "outputs": outputs,
+        "saw_key": saw_key,
+        "env": env,
+    }
 
 
-def _needles(key: str) -> list[bytes]:
-    """The key, its random part, and a 16-character piece of that (a truncated or reformatted copy)."""
+def _needles(key: str, others: list[str] = ()) -> list[bytes]:
+    """The key, its random part, and a 16-character piece of that (a truncated or reformatted copy); the other
+    planted secrets and their random parts."""
     token = key.removeprefix("sk-planted-")
-    return [key.encode(), token.encode(), token[:16].encode(), token[-16:].encode()]
+    out = [key.encode(), token.encode(), token[:16].encode(), token[-16:].encode()]
+    for o in others:
+        out += [o.encode(), o.split("-", 1)[1].encode()]
+    return out
 
 
 def _sqlite_values(path: Path) -> list[bytes]:
@@ -145,6 +183,13 @@ def _leaks(paths: list[Path], needles: list[bytes]) -> list[str]:
 
 def test_the_planted_key_was_really_used(secret_run):
     assert f"Bearer {secret_run['key']}" in secret_run["saw_key"]  # else this suite would prove nothing
+    assert f"Bearer {secret_run['others'][0]}" in secret_run["saw_key"]  # the key of --api-key-env too
+
+
+def test_answers_quoting_the_key_reached_transcripts_masked(secret_run):
+    """The server's answers quoted the Authorization header: the transcripts hold the answers, masked."""
+    texts = [p.read_text() for p in (secret_run["run_dir"] / "transcripts").rglob("*.json")]
+    assert texts and any("Authorization: Bearer ***" in t for t in texts)
 
 
 def test_secret_never_written_to_any_file_or_console(secret_run, figures):
@@ -155,7 +200,7 @@ def test_secret_never_written_to_any_file_or_console(secret_run, figures):
     assert {"run.json", "cache.db", "openai_fake-vlm.jsonl", "manifest.json", "export.jsonl", "rows.csv"} <= kinds
     assert any(p.suffix == ".json" and "transcripts" in p.parts for p in files)
     assert any("embeddings" in p.parts for p in files)
-    needles = _needles(key)
+    needles = _needles(key, secret_run["others"])
     assert _leaks(files, needles) == []
     console = "\n".join(secret_run["outputs"])
     assert "DEBUG" in console and len(console) > 10_000  # logging really was at DEBUG
@@ -177,4 +222,4 @@ def test_secret_absent_from_html_report(secret_run):
     assert index.is_file()
     files = all_files(secret_run["run_dir"])
     assert any(p.suffix == ".html" for p in files)
-    assert _leaks(files, _needles(secret_run["key"])) == []
+    assert _leaks(files, _needles(secret_run["key"], secret_run["others"])) == []

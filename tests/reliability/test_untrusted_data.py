@@ -228,9 +228,8 @@ def test_an_object_array_in_steps_npz_is_refused(tmp_path, figures):
             zf.writestr(f"{name}.npy", member.getvalue())
     steps.write_bytes(buf.getvalue())
     write_manifest(fixtures)  # the manifest blesses it: only the reader stands in the way
-    episode = load_episode(fixtures, "door_04")
     with pytest.raises(EpisodeError, match=r"steps\.npz: cannot read full-rate states"):
-        _ = episode.step_states
+        _ = load_episode(fixtures, "door_04").step_states  # loading reads (and checks) steps.npz
     assert not marker.exists()
     figures("untrusted data: planted pickles", planted=1, refused=1, executed=0)
 

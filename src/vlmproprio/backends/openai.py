@@ -71,6 +71,20 @@ def _completion_text(resp) -> str:
     return _server_text(content)
 
 
+def _check_key(key: str, env: str) -> None:
+    """An HTTP header carries printable ASCII only: say so (never showing the key) instead of letting the
+    HTTP layer fail as "cannot reach the server" (a newline) or with a UnicodeEncodeError (non-ASCII)."""
+    for i, c in enumerate(key):
+        if not 33 <= ord(c) <= 126:
+            what = {"\n": "a newline", "\r": "a carriage return", " ": "a space", "\t": "a tab"}.get(
+                c, f"the non-ASCII character U+{ord(c):04X}" if ord(c) > 126 else f"control character {ord(c)}"
+            )
+            raise BackendError(
+                f"${env} contains {what} at position {i + 1} of {len(key)}; an API key is printable ASCII only "
+                f"(check how it was set, e.g. a trailing newline from a file: export {env}=\"$(tr -d '\\n' < FILE)\")"
+            )
+
+
 class OpenAIBackend(Backend):
     """Chat completions with bounded concurrency; answers come back in request order."""
 
@@ -101,7 +115,12 @@ class OpenAIBackend(Backend):
         self.backoff_s = backoff_s
         # enough requests per call to keep every worker busy, few enough that a crash loses little
         self.max_batch_size = max_batch_size or max(16, 4 * concurrency)
+        from vlmproprio.secrets import register_secret_env
+
+        register_secret_env(api_key_env)  # its value is masked in everything written or printed
         key = os.environ.get(api_key_env)
+        if key:
+            _check_key(key, api_key_env)
         if not key and base_url is None:
             raise BackendError(
                 f"no API key: set the environment variable {api_key_env} (the key is read from the environment "

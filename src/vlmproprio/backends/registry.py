@@ -16,6 +16,7 @@ This module imports no heavy library: backends import theirs when they are built
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
 import os
 import re
@@ -129,6 +130,8 @@ def _check_name(name: object) -> str:
         raise ModelNameError(f"model name longer than {MAX_NAME_LEN} characters")
     if any(ord(c) < 32 or ord(c) == 127 for c in name):
         raise ModelNameError(f"model name {name!r} contains control characters (NUL, newline, ...)")
+    if not name.isprintable():  # U+2028 / U+2029 split printed lines; format characters hide text
+        raise ModelNameError(f"model name {name!r} contains a line separator or other unprintable character")
     if ".." in name or "\\" in name:
         raise ModelNameError(f"model name {name!r} contains '..' or a backslash; refused (it could leave a folder)")
     return name
@@ -153,19 +156,34 @@ def _sanitise(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("._-")
 
 
+_DIGEST_TAIL = re.compile(r"-[0-9a-f]{8}$")
+
+
 def model_slug(name: str) -> str:
-    """One safe path component for a model name: registry names as they are, ``hf_…``/``openai_…`` otherwise."""
+    """One safe path component per model: registry names as they are, ``hf_…``/``openai_…`` otherwise.
+
+    The readable part of an ``hf:``/``openai:`` name can lose information (``openai:org/m`` and
+    ``openai:org_m``; ``hf:…/run1/checkpoint-500`` and ``hf:…/run2/checkpoint-500``; upper case on a
+    case-insensitive disk): then the slug ends in ``-`` and 8 hex digits of the sha256 of the full name, so
+    two names never share a transcripts folder or a cassette. A name kept whole gets no suffix (registry
+    names, ``openai:gpt-4o``), so existing folders, cassettes and baselines keep their names."""
     spec = parse_model_name(name)
     if name in REGISTRY:
-        slug = name
-    elif spec.backend == "hf":
+        return name
+    if spec.backend == "hf":
         w = spec.weights.rstrip("/")
         # a folder is named by its last part (its absolute path differs between machines), a repo id in full
         looks_like_path = w.startswith(("/", ".", "~")) or w.count("/") > 1
-        slug = "hf_" + _sanitise(w.rsplit("/", 1)[-1] if looks_like_path else w)
+        readable = w.rsplit("/", 1)[-1] if looks_like_path else w
+        slug, lossless = "hf_" + _sanitise(readable), not looks_like_path
     else:
-        slug = "openai_" + _sanitise(spec.weights)
-    if not _SLUG_RE.match(slug) or ".." in slug or slug.rstrip("_") in ("hf", "openai"):
+        w = readable = spec.weights
+        slug, lossless = "openai_" + _sanitise(readable), True
+    lossless = lossless and _sanitise(readable) == readable and readable == readable.lower()
+    if not lossless or _DIGEST_TAIL.search(slug):
+        full = f"{spec.backend}:{w}"
+        slug = f"{slug[:110]}-{hashlib.sha256(full.encode('utf-8')).hexdigest()[:8]}"
+    if not _SLUG_RE.match(slug) or ".." in slug or slug.split("-")[0].rstrip("_") in ("hf", "openai"):
         raise ModelNameError(f"model name {name!r} gives no usable file name ({slug!r})")
     return slug
 
@@ -241,7 +259,11 @@ def create_backend(name: str, mode: str = "live", settings: BackendSettings | No
         path = cassette_path(name, settings.cassette_dir)
         if not path.is_file():
             raise BackendError(f"no cassette for model {name!r} at {path}; " + _record_hint(name))
-        return ReplayBackend(path, model=model_slug(name))
+        from vlmproprio.episodes import check_fixture_file
+
+        backend = ReplayBackend(path, model=model_slug(name))  # a damaged line: an error naming file and line
+        check_fixture_file(path)  # a line edited and re-checksummed: the manifest's sha256 differs
+        return backend
     if spec.backend == "hf":
         from vlmproprio.backends.hf import HFBackend
 

@@ -6,7 +6,8 @@ import re
 from collections.abc import Sequence
 from pathlib import Path
 
-from vlmproprio.episodes import Episode, atomic_write_text
+from vlmproprio.episodes import Episode
+from vlmproprio.io import atomic_write_text, make_dirs
 from vlmproprio.report.data import TASK_LABELS, ReportError, RunScores, load_run_scores
 from vlmproprio.report.page import (
     FRAMES_DIR,
@@ -28,6 +29,15 @@ INDEX = "index.html"
 MARKDOWN = "report.md"
 # files this module writes into the report folder; anything else there is left alone
 OWNED = re.compile(r"^(fig5_success|fig6_points|f1_threshold|fig7_trace|fig8_trace)[^/]*\.png$")
+
+
+# C0 controls other than tab, newline and carriage return (NUL above all) are not allowed in HTML text; a
+# model's answer can hold them. HTML parsers turn NUL into U+FFFD anyway: do it here, so the file is valid.
+_HTML_CONTROLS = re.compile(r"[\x00-\x08\x0b\x0c\x0e-\x1f\x7f]")
+
+
+def html_text(page: str) -> str:
+    return _HTML_CONTROLS.sub("\ufffd", page)
 
 
 def _safe(name: str) -> str:
@@ -226,7 +236,12 @@ def write_report(
     require_report_packages()
     s = load_run_scores(run_dir)
     out = Path(out) if out is not None else Path(run_dir) / REPORT_DIR
-    out.mkdir(parents=True, exist_ok=True)
+    root = fixtures if fixtures is not None else s.manifest.get("fixtures")
+    if root and Path(root).is_dir():
+        from vlmproprio.runner import refuse_nesting
+
+        refuse_nesting(Path(root), {"--out": out})
+    make_dirs(out)
     notices: list[str] = []
     if s.manifest.get("status") not in (None, "complete"):
         notices.append(f"The run is not complete (status {s.manifest.get('status')!r}): numbers cover what was done.")
@@ -280,6 +295,6 @@ def write_report(
         verdicts=verdict_table(s) if s.verdicts.get("verdicts") else None,
     )
     index = out / INDEX
-    atomic_write_text(index, render_page(ctx))
+    atomic_write_text(index, html_text(render_page(ctx)))
     _remove_stale(out, keep)
     return index

@@ -6,11 +6,11 @@ here, so a report always shows the numbers the scores hold.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from vlmproprio.errors import VlmproprioError
+from vlmproprio.io import load_json
 
 SCORES_DIR = "scores"
 # the score files a report needs; sweep.json (per episode) is left out: the plots use the means
@@ -87,7 +87,7 @@ def scores_present(run_dir: str | Path) -> bool:
 
 def _read_json(path: Path, kind: type):
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
+        data = load_json(path, error=ReportError)
     except FileNotFoundError:
         raise ReportError(f"{path}: missing; score the run first (`vlmproprio score {path.parent.parent}`)") from None
     except (OSError, ValueError) as exc:
@@ -107,6 +107,13 @@ def load_run_scores(run_dir: str | Path) -> RunScores:
     if not run_dir.is_dir():
         raise ReportError(f"{run_dir}: run directory not found")
     d = run_dir / SCORES_DIR
+    if (d / "meta.json").is_file():  # else the missing-file error below says to score the run
+        from vlmproprio.evaluation import StaleScoresError, check_scores
+
+        try:  # one generation, stamped with what it was computed from: refuse stale or mixed scores
+            check_scores(run_dir, [f"{name}.json" for name in SCORE_FILES])
+        except StaleScoresError as exc:
+            raise ReportError(str(exc)) from None
     kinds = {"audit": dict, "traces": dict, "meta": dict, "verdicts": dict}
     t = {name: _read_json(d / f"{name}.json", kinds.get(name, list)) for name in SCORE_FILES}
     manifest = _read_json(run_dir / "run.json", dict) if (run_dir / "run.json").is_file() else {}

@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-from vlmproprio.episodes import Episode, atomic_write_bytes
+from vlmproprio.episodes import Episode
+from vlmproprio.io import atomic_write_bytes
 from vlmproprio.report.data import TASK_LABELS, RunScores
 from vlmproprio.report.plots import Plot
 from vlmproprio.report.tables import Table, fmt_value

@@ -68,11 +68,14 @@ def _figure(width: float, height: float):
 
 
 def save_figure(fig, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
+    import io as _io
+
+    from vlmproprio.io import atomic_write_bytes
+
+    buf = _io.BytesIO()
     # no software/date metadata: the same scores give the same bytes
-    fig.savefig(tmp, format="png", dpi=DPI, metadata={"Software": None})
-    tmp.replace(path)
+    fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None})
+    atomic_write_bytes(path, buf.getvalue())  # one-line error on a read-only or full folder, no temp left
 
 
 def _n_episodes(s: RunScores, model: str, task: str) -> int:

@@ -1,0 +1,111 @@
+"""Issue 15, defect 2: two model names, one folder.
+
+Names whose readable parts sanitise alike (``openai:org/m`` and ``openai:org_m``, two checkpoints both called
+``checkpoint-500``, upper and lower case) must get different transcripts folders and cassettes; a model that
+would still meet another's folder or cassette is refused naming both; and no error advises a command that
+would delete another model's answers (the old advice was ``--replace``).
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+from reliability_support import assert_one_line_error, caption_responder, cli, cli_env, fixture_subset
+
+from vlmproprio.backends.registry import model_slug
+
+pytest.importorskip("openai", reason="the openai backend needs the openai SDK")
+
+from vlmproprio.testing.openai_server import FakeOpenAIServer
+
+PAIRS = [
+    ("openai:org/m", "openai:org_m"),
+    ("hf:/ckpt/run1/checkpoint-500", "hf:/ckpt/run2/checkpoint-500"),
+    ("hf:org/name", "hf:org_name"),
+    ("openai:GPT-4o", "openai:gpt-4o"),
+    ("openai:a b", "openai:a_b"),
+    ("openai:org_m-9e955f65", "openai:org/m"),
+    ("hf:./tiny", "hf:/x/tiny"),
+    ("hf:Qwen/Qwen2-VL-2B-Instruct", "hf:/models/Qwen/Qwen2-VL-2B-Instruct"),
+]
+
+
+@pytest.mark.parametrize(("a", "b"), PAIRS)
+def test_names_that_sanitise_alike_get_different_folders(a, b, figures):
+    sa, sb = model_slug(a), model_slug(b)
+    assert sa.lower() != sb.lower()  # different even on a case-insensitive disk
+    figures("model name collisions", pairs=1, disambiguated=1, refused=0, overwritten=0)
+
+
+def test_registry_names_keep_their_folders():
+    """Shipped cassettes and baselines are named by registry name: those names must not change."""
+    assert model_slug("reference") == "reference" and model_slug("tiny-qwen2-vl") == "tiny-qwen2-vl"
+    assert model_slug("openai:gpt-4o") == "openai_gpt-4o"
+
+
+def test_two_colliding_models_recorded_into_one_run_and_fixtures_keep_both(tmp_path, figures):
+    fixtures = fixture_subset(tmp_path / "fixtures", ["door_00"])
+    env = cli_env(VLMPROPRIO_CACHE=str(tmp_path / "cache"))
+    run = tmp_path / "run"
+    a, b = "openai:org/m", "openai:org_m"
+    with FakeOpenAIServer(responder=lambda body: f"{body['model']}: " + caption_responder(body)) as server:
+        for name in (a, b):
+            proc = cli(
+                [
+                    *(
+                        "run",
+                        "--model",
+                        name,
+                        "--base-url",
+                        server.base_url,
+                        "--mode",
+                        "record",
+                        "--fixtures",
+                        fixtures,
+                    ),
+                    *("--episodes", "door_00", "--conditions", "none", "--frame-stride", "3", "--out", run),
+                    "--no-progress",
+                ],
+                env=env,
+            )
+            assert proc.returncode == 0, proc.stderr
+    cassettes = {n: fixtures / "responses" / f"{model_slug(n)}.jsonl" for n in (a, b)}
+    assert all(p.is_file() for p in cassettes.values()) and len(set(cassettes.values())) == 2
+    for name, path in cassettes.items():  # each cassette holds its own model's answers
+        lines = path.read_text().splitlines()
+        assert json.loads(lines[0])["model"] == model_slug(name)
+        assert all(json.loads(line)["text"].startswith(name.removeprefix("openai:")) for line in lines[1:])
+    doc = json.loads((run / "run.json").read_text())
+    assert [m["name"] for m in doc["models"]] == [a, b]  # the second run added its model, kept the first
+    for name in (a, b):
+        t = json.loads((run / "transcripts" / model_slug(name) / "door_00__none.json").read_text())
+        assert t["final"].startswith(name.removeprefix("openai:"))
+
+    # exporting one model's answers over the other's cassette: refused, no destructive advice, file unchanged
+    before = cassettes[a].read_bytes()
+    proc = cli(
+        [
+            *("cassette", "export", "--model", b),  # the cache: $VLMPROPRIO_CACHE
+            *("--out", cassettes[a], "--replace"),
+        ],
+        env=env,
+    )
+    line = assert_one_line_error(proc, model_slug(a), model_slug(b))
+    assert "--replace" not in line and cassettes[a].read_bytes() == before
+    figures("model name collisions", pairs=1, disambiguated=1, refused=0, overwritten=0)
+    figures("destructive advice", errors=1, advising_replace=0, cassettes_overwritten=0)
+
+
+def test_a_folder_recorded_for_another_model_is_refused_naming_both(tmp_path, figures):
+    fixtures = fixture_subset(tmp_path / "fixtures", ["door_00"])
+    env = cli_env(VLMPROPRIO_CACHE=str(tmp_path / "cache"))
+    run = tmp_path / "run"
+    args = ["run", "--model", "reference", "--episodes", "door_00", "--conditions", "none", "--frame-stride", "3"]
+    assert cli([*args, "--fixtures", fixtures, "--out", run, "--no-progress"], env=env).returncode == 0
+    doc = json.loads((run / "run.json").read_text())
+    doc["models"][0]["name"] = "openai:reference"  # as if another model had written transcripts/reference/
+    (run / "run.json").write_text(json.dumps(doc))
+    proc = cli([*args, "--fixtures", fixtures, "--out", run, "--no-progress"], env=env)
+    assert_one_line_error(proc, "'reference'", "'openai:reference'")
+    figures("model name collisions", pairs=1, disambiguated=0, refused=1, overwritten=0)
