@@ -106,7 +106,9 @@ def test_page_renders_its_images_and_tables_in_chromium(copied_report, tmp_path)
     assert '<script>document.title="pwned"</script>' in "".join(d.text)  # shown as text instead
     plots = [i for i in d.images if i["src"].endswith(".png")]
     thumbs = [i for i in d.images if i["src"].startswith("frames/")]
-    assert len(plots) == 5 and all(i.get("data-state") == "ok" for i in plots), plots
+    assert len(plots) == 6 and all(i.get("data-state") == "ok" for i in plots), (
+        plots
+    )  # Figs. 5, 6, F1, two traces, power
     eager = [i for i in thumbs if i.get("loading") != "lazy"]
     assert len(eager) == 14 and all(i.get("data-state") == "ok" for i in eager), eager[:3]
     assert d.tables >= 6 and d.rows > 100

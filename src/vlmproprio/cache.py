@@ -485,13 +485,13 @@ def write_cassette(
             # never advise deleting it: that file holds another model's answers
             raise CassetteError(
                 f"{path} holds the answers of another model ({old.model}), not of {model}; refusing to overwrite "
-                "it: write this cassette to another file (`vlmproprio cassette export --out FILE`)"
+                "it: write this cassette to another file (`vlmproprio cassette export --model MODEL --out FILE`)"
             )
         if merge and old.identity != ident:
             raise CassetteError(
                 f"{path}: recorded from {_describe(old.identity)}, not {_describe(ident)} ({len(old.entries)} answers "
                 f"of {model}); one cassette holds one identity: write this one to another file "
-                "(`vlmproprio cassette export --out FILE`)"
+                "(`vlmproprio cassette export --model MODEL --out FILE`)"
             )
         if merge:
             merged.update(old.entries)

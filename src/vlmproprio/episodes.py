@@ -300,8 +300,8 @@ def check_fixture_file(path: Path) -> None:
     files = read_manifest(root)
     if rel not in files:
         raise EpisodeError(
-            f"{path}: not in {root / MANIFEST_NAME}; a recording registers its cassette there (`vlmproprio run "
-            "--mode record` or `vlmproprio cassette export`)"
+            f"{path}: not in {root / MANIFEST_NAME}; a recording registers its cassette there "
+            "(`vlmproprio run --model MODEL --mode record` or `vlmproprio cassette export --model MODEL`)"
         )
     if sha256_file(path) != files[rel]:
         raise EpisodeError(

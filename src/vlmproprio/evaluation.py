@@ -869,7 +869,7 @@ def run_transcript_files(run_dir: Path, manifest: dict) -> list[Path]:
         raise ScoreRunError(
             f"{run_dir}: the run recorded in run.json is not finished ({len(missing)} of {len(expected)} "
             f"transcripts missing, e.g. {missing[0].relative_to(run_dir)}); finish it by running the same "
-            "`vlmproprio run` command again (answers already made are cached)"
+            "`vlmproprio run --model MODEL --out RUN_DIR` command again (answers already made are cached)"
         )
     extra = sorted(set(on_disk) - set(expected))
     if extra:

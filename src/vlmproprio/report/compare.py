@@ -116,7 +116,7 @@ def compare_runs(
     *,
     model_a: str | None = None,
     model_b: str | None = None,
-    metrics: Sequence[str] = COMPARE_METRICS,
+    metrics: Sequence[str] | None = None,
     tasks: Sequence[str] | None = None,
     n_boot: int | None = None,
     seed: int | None = None,
@@ -153,6 +153,10 @@ def compare_runs(
     only_a, only_b = len(set(ia) - set(ib)), len(set(ib) - set(ia))
     if only_a or only_b:
         notes.append(f"{only_a} row(s) only in A and {only_b} only in B are left out")
+    if metrics is None:  # the default set, less what these scores lack (out-of-sample needs 2+ episodes a task)
+        metrics = [m for m in COMPARE_METRICS if m in ia[common[0]] or m in MEAN_ONLY_METRICS]
+        if lacking := [m for m in COMPARE_METRICS if m not in metrics]:
+            notes.append(f"not in these scores, left out: {', '.join(lacking)}")
     unknown = [m for m in metrics if m not in ia[common[0]] and m not in MEAN_ONLY_METRICS]
     if unknown:
         raise ReportError(f"unknown metric(s) {', '.join(unknown)}; see the columns of scores/rows.csv")

@@ -28,6 +28,7 @@ RUN_FILES: dict[str, str] = {
     "scores/meta.json": "meta",
     "scores/timing.json": "timing",
     "scores/verdicts.json": "verdicts",
+    "scores/stamp.json": "stamp",
 }
 
 
