@@ -66,7 +66,7 @@ def test_models_says_what_can_run_here(capsys) -> None:
     assert "reference  [reference]  replay: yes  live: yes" in out
 
 
-def test_allow_download_is_off_by_default_and_says_why_it_failed(monkeypatch, capsys) -> None:
+def test_allow_download_is_off_by_default_and_says_why_it_failed(monkeypatch, capsys, tmp_path) -> None:
     from vlmproprio.backends.registry import BackendSettings, model_availability
 
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
@@ -77,8 +77,10 @@ def test_allow_download_is_off_by_default_and_says_why_it_failed(monkeypatch, ca
     assert "--allow-download" in off.reason
     assert on and "downloaded from the Hugging Face Hub" in on.reason
     args = ["run", "--model", "qwen2-vl", "--mode", "live", "--allow-download", "--fixtures", str(FIXTURES)]
-    assert main([*args, "--episodes", "door_00", "--conditions", "none", "--out", "/nonexistent/never"]) == 2
+    out = tmp_path / "never"  # a folder of the test's own: a real path outside it would outlive the test
+    assert main([*args, "--episodes", "door_00", "--conditions", "none", "--out", str(out)]) == 2
     assert "--allow-download: could not download Qwen/Qwen2-VL-2B-Instruct" in capsys.readouterr().err
+    assert not list(out.glob("transcripts/*/*.json"))  # nothing was captioned
 
 
 def test_fixtures_come_from_the_option_then_the_environment_then_the_repository(monkeypatch, tmp_path) -> None:

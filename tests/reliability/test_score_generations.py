@@ -107,9 +107,10 @@ def test_stale_or_mixed_scores_are_refused(scored, case, command, figures):
     args = ["report", run, "--fixtures", fixtures] if command == "report" else ["compare", current, run]
     proc = cli(args, env=env)
     # a removed transcript is fixed by finishing the run, a stray one by moving it away, the rest by scoring again
-    fix = {"transcript removed": "the same `vlmproprio run` command", "transcript added": "move them out"}.get(
-        case, f"`vlmproprio score {run}`"
-    )
+    fix = {
+        "transcript removed": "the same `vlmproprio run --model MODEL --out RUN_DIR` command",
+        "transcript added": "move them out",
+    }.get(case, f"`vlmproprio score {run}`")
     assert_one_line_error(proc, "out of date", fix)
     assert not (run / "report" / "index.html").exists()
     figures("stale scores: report/compare", attempts=1, refused=1)
