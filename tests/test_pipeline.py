@@ -199,3 +199,13 @@ def test_every_episode_is_a_partner_once_and_permuted_states_have_no_timeline(al
     ]
     assert np.mean(rs) < 0.35  # a random order keeps next to nothing of the timeline
     assert state_correlations(ep, get_condition("none"), all_episodes) == {}
+
+
+def test_pipeline_settings_round_trip_through_what_a_run_records():
+    from vlmproprio import prompts
+    from vlmproprio.pipeline import PipelineSettings
+
+    for version in prompts.PROMPT_VERSIONS:
+        for example in (True, False):
+            s = PipelineSettings(k=4, frame_stride=2, max_images_p3=3, prompt=prompts.PromptOptions(example, version))
+            assert PipelineSettings.from_dict(s.to_dict()) == s

@@ -101,3 +101,14 @@ def test_show_says_when_the_prompts_no_longer_match(scored_run: Path, tmp_path, 
     assert "differ" in capsys.readouterr().out
     assert main(["show", str(run), "--episode", "door_99", "--condition", "none"]) == 2
     assert "no transcript of reference for episode 'door_99'" in capsys.readouterr().err
+
+
+def test_show_rerenders_a_run_of_the_papers_verbatim_prompts(tmp_path, capsys) -> None:
+    """show rebuilds the prompts of the version the run recorded, not the default one."""
+    run = tmp_path / "verbatim"
+    args = ["run", "--model", "reference", "--fixtures", str(REPO / "fixtures"), "--episodes", "door_00"]
+    args += ["--conditions", "both", "--prompt-version", "paper-verbatim", "--no-example", "--out", str(run)]
+    assert main([*args, "--no-progress"]) == 0
+    capsys.readouterr()
+    assert main(["show", str(run), "--episode", "door_00", "--condition", "both"]) == 0
+    assert ", 0 differ" in capsys.readouterr().out

@@ -60,6 +60,19 @@ class PipelineSettings:
             "generation": self.generation.to_dict(),
         }
 
+    @classmethod
+    def from_dict(cls, d: dict) -> PipelineSettings:
+        """The settings ``to_dict`` recorded (run.json models[].pipeline), the prompt version included."""
+        recorded = str(d.get("prompt_version", ""))
+        version = "paper-verbatim" if recorded.startswith("paper-verbatim") else "suite"
+        return cls(
+            k=int(d["k"]),
+            frame_stride=int(d["frame_stride"]),
+            max_images_p3=d.get("max_images_p3"),
+            prompt=prompts.PromptOptions(example=bool(d.get("prompt_example", True)), version=version),
+            generation=GenerationConfig(**d.get("generation", {})),
+        )
+
 
 def groups(n: int, k: int) -> list[range]:
     """Consecutive groups of k frame positions; the last one may be shorter."""

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from vlmproprio import prompts
 from vlmproprio.cache import request_key
-from vlmproprio.chat import ChatRequest, GenerationConfig, ImagePart
+from vlmproprio.chat import ChatRequest, ImagePart
 from vlmproprio.conditions import frame_states, get_condition
 from vlmproprio.episodes import load_episodes
 from vlmproprio.errors import UsageError
@@ -64,18 +64,6 @@ def _pick_model(manifest: dict, model: str | None, where: Path) -> dict:
     raise UsageError(f"{where}: no model {model!r} in the run (it holds: {names})")
 
 
-def pipeline_settings(recorded: dict) -> PipelineSettings:
-    """The pipeline settings a run recorded for a model (run.json models[].pipeline)."""
-    options = prompts.PromptOptions(example=bool(recorded.get("prompt_example", True)))
-    return PipelineSettings(
-        k=int(recorded["k"]),
-        frame_stride=int(recorded["frame_stride"]),
-        max_images_p3=recorded.get("max_images_p3"),
-        prompt=options,
-        generation=GenerationConfig(**recorded.get("generation", {})),
-    )
-
-
 def rerender(
     run_dir: str | Path,
     episode_id: str,
@@ -88,7 +76,7 @@ def rerender(
     run_dir = Path(run_dir)
     manifest = _run_manifest(run_dir)
     m = _pick_model(manifest, model, run_dir / "run.json")
-    settings = pipeline_settings(m["pipeline"])
+    settings = PipelineSettings.from_dict(m["pipeline"])
     version = prompts.prompt_version(settings.prompt)
     if version != m["pipeline"].get("prompt_version"):
         raise UsageError(
