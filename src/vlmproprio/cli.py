@@ -8,7 +8,6 @@ Known errors print one line and exit with status 2; `--debug` shows the tracebac
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -455,12 +454,11 @@ def cmd_export_dataset(args: argparse.Namespace) -> int:
 def _score_with_judge(args: argparse.Namespace, score: dict):
     """score_run with a judge model whose requests go through the response cache and cassettes like captioning."""
     from vlmproprio.backends.registry import BackendSettings, resolve_mode
-    from vlmproprio.evaluation import resolve_fixtures, score_run
+    from vlmproprio.evaluation import read_run_manifest, resolve_fixtures, score_run
     from vlmproprio.scoring import judge_session
 
-    manifest_path = args.run_dir / "run.json"
-    manifest = json.loads(manifest_path.read_text(encoding="utf-8")) if manifest_path.is_file() else {}
-    fixtures = resolve_fixtures(args.run_dir, manifest, args.fixtures)
+    # through the bounded JSON loader: a damaged run.json is one line naming it, as everywhere else
+    fixtures = resolve_fixtures(args.run_dir, read_run_manifest(args.run_dir), args.fixtures)
     settings = BackendSettings(
         threads=args.judge_threads,
         base_url=args.base_url,

@@ -123,7 +123,7 @@ class ScoreTables:
 # ---------------------------------------------------------------------------------------------- inputs
 
 
-def _read_run_manifest(run_dir: Path) -> dict:
+def read_run_manifest(run_dir: Path) -> dict:
     path = run_dir / "run.json"
     if not path.is_file():
         return {}
@@ -367,7 +367,7 @@ def score_run(
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise ScoreRunError(f"{run_dir}: run directory not found")
-    manifest = _read_run_manifest(run_dir)
+    manifest = read_run_manifest(run_dir)
     transcript_files = run_transcript_files(run_dir, manifest)
     transcripts = [read_transcript(p) for p in transcript_files]
     if not transcripts:
@@ -997,7 +997,7 @@ def check_scores(run_dir: str | Path, names: Sequence[str] = ()) -> dict:
         raise StaleScoresError(
             f"{out}: scores are out of date: scored by {recorded.get('code')}, this is {code_version()}; {fix}"
         )
-    manifest = _read_run_manifest(run_dir)
+    manifest = read_run_manifest(run_dir)
     try:
         current = run_transcript_files(run_dir, manifest)
     except ScoreRunError as exc:
