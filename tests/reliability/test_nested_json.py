@@ -68,6 +68,14 @@ CASES = {
         lambda w, t: _write(w / "run" / "run.json", t),
         lambda w: ["run", *RUN_ARGS, "--fixtures", w / "fixtures", "--out", w / "run", "--no-progress"],
     ),
+    "run.json (show)": (
+        lambda w, t: _write(w / "run" / "run.json", t),
+        lambda w: ["show", w / "run", "--episode", "door_00", "--condition", "none"],
+    ),
+    "run.json (score --judge)": (
+        lambda w, t: _write(w / "run" / "run.json", t),
+        lambda w: ["score", w / "run", "--judge", "reference", "--no-progress"],
+    ),
     "scores/meta.json": (lambda w, t: _write(w / "run" / "scores" / "meta.json", t), lambda w: ["report", w / "run"]),
     "scores/stamp.json": (lambda w, t: _write(w / "run" / "scores" / "stamp.json", t), lambda w: ["report", w / "run"]),
 }
