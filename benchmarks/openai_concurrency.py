@@ -6,7 +6,7 @@ The server is the suite's loopback FakeOpenAIServer (a real HTTP server on
 127.0.0.1 that the openai SDK talks to as to vLLM) with an artificial latency
 per request. The requests are real Process 1 requests made by the pipeline
 (up to 5 PNG frames each, sent base64-encoded), answered through the suite's
-own path: ``CachedBackend`` (live, no cache) -> ``OpenAIBackend``. With the
+own path: ``Answerer`` (live, no cache) -> ``OpenAIBackend``. With the
 latency dominating, N requests at concurrency c should take about N * latency / c
 (at least ceil(N / c) whole rounds of one latency each).
 """
@@ -62,8 +62,8 @@ def main(argv=None) -> int:
     ap.add_argument("--out", type=Path, help="also write the numbers as JSON here")
     args = ap.parse_args(argv)
 
+    from vlmproprio.answering import Answerer
     from vlmproprio.backends.openai import OpenAIBackend
-    from vlmproprio.cache import CachedBackend
     from vlmproprio.testing.openai_server import FakeOpenAIServer
 
     requests = p1_requests(args.requests)
@@ -79,7 +79,7 @@ def main(argv=None) -> int:
             server.max_in_flight = 0
             try:
                 backend.generate(requests[:1])  # connection pool and SDK set up before the clock starts
-                cached = CachedBackend(backend, mode="live", cache=None)
+                cached = Answerer(backend, mode="live", cache=None)
                 before = len(server.chat_requests)
                 t0 = time.perf_counter()
                 answers = cached.answer(requests)

@@ -10,9 +10,10 @@ from dataclasses import replace
 
 import pytest
 
+from vlmproprio.answering import Answerer
 from vlmproprio.backends.base import BackendError
 from vlmproprio.backends.tiny import file_hashes
-from vlmproprio.cache import CachedBackend, ResponseCache
+from vlmproprio.cache import ResponseCache
 from vlmproprio.chat import GenerationConfig, RequestTag
 
 pytest.importorskip("transformers", reason="the hf backend needs transformers (pip install 'vlmproprio[hf]')")
@@ -116,8 +117,8 @@ def test_other_tiny_families(family, tmp_path, torch_one_thread, request_factory
 def test_cached_hf_answers(tiny_qwen2vl_backend, request_factory, png_factory, tmp_path):
     reqs = mixed_requests(request_factory, png_factory, 2)
     with ResponseCache(tmp_path / "c") as cache:
-        live = CachedBackend(tiny_qwen2vl_backend, mode="live", cache=cache, model="tiny-qwen2-vl").answer(reqs)
-        again = CachedBackend(tiny_qwen2vl_backend, mode="replay", cache=cache).answer(reqs)
+        live = Answerer(tiny_qwen2vl_backend, mode="live", cache=cache, model="tiny-qwen2-vl").answer(reqs)
+        again = Answerer(tiny_qwen2vl_backend, mode="replay", cache=cache).answer(reqs)
     assert [a.text for a in again] == [a.text for a in live] and all(a.from_cache for a in again)
 
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
+from vlmproprio.answering import Answerer
 from vlmproprio.backends.base import BackendError
-from vlmproprio.cache import CachedBackend
 from vlmproprio.chat import GenerationConfig, RequestTag
 from vlmproprio.conditions import CONDITIONS
 
@@ -73,7 +73,7 @@ def test_cached_backend_hands_the_backend_its_own_plan(make_backend, request_fac
     seen = []
     generate = backend.generate
     backend.generate = lambda batch: seen.append([len(r.images) for r in batch]) or generate(batch)
-    answers = CachedBackend(backend, mode="live", cache=None).answer(reqs)
+    answers = Answerer(backend, mode="live", cache=None).answer(reqs)
     assert [sorted(s) for s in seen] == [[5, 5, 5], [1, 1, 1], [0, 0, 0]]
     assert [a.text for a in answers] == [a.text for a in make_backend(max_batch_size=1).generate(reqs)]
 

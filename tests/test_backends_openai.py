@@ -9,8 +9,9 @@ import time
 
 import pytest
 
+from vlmproprio.answering import Answerer
 from vlmproprio.backends.base import BackendError
-from vlmproprio.cache import CachedBackend, ResponseCache, canonical_json
+from vlmproprio.cache import ResponseCache, canonical_json
 from vlmproprio.chat import GenerationConfig, RequestTag
 from vlmproprio.testing.openai_server import FakeOpenAIServer, expected_answer
 
@@ -154,7 +155,7 @@ def test_server_dying_mid_run_keeps_what_was_answered(api_key, request_factory, 
 
     reqs = requests_for(request_factory, png_factory, 8)
     with FakeOpenAIServer(responder=responder) as server, ResponseCache(tmp_path / "c") as cache:
-        cached = CachedBackend(backend_for(server, concurrency=1, max_retries=0), mode="live", cache=cache)
+        cached = Answerer(backend_for(server, concurrency=1, max_retries=0), mode="live", cache=cache)
         with pytest.raises(BackendError, match="4 of 8 requests answered"):
             cached.answer(reqs)
         assert len(cache) == 4
@@ -188,7 +189,7 @@ def test_planted_api_key_never_reaches_any_file(api_key, request_factory, png_fa
             for fault in ("429", "500", "malformed", "reset"):
                 server.inject(fault, retry_after=0.05)
             backend = backend_for(server, max_retries=3, backoff_s=0.05)
-            cached = CachedBackend(backend, mode="record", cache=cache, model="gpt-4o")
+            cached = Answerer(backend, mode="record", cache=cache, model="gpt-4o")
             answers = cached.answer(reqs)
             cassette = cached.export_cassette(tmp_path / "responses" / "gpt-4o.jsonl")
             server.inject("500", times=10)

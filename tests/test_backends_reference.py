@@ -6,9 +6,9 @@ import re
 
 import pytest
 
+from vlmproprio.answering import Answerer
 from vlmproprio.backends.base import BackendError
 from vlmproprio.backends.reference import NO_STATE, ReferenceBackend, reference_answer
-from vlmproprio.cache import CachedBackend
 from vlmproprio.prompts.state import format_state_line
 
 OPEN, CLOSED = 0.08, 0.01
@@ -92,5 +92,5 @@ def test_backend_is_deterministic_labelled_and_never_a_model(request_factory):
     assert [a.text for a in first] == [a.text for a in second]
     assert "not a vision-language model" in first[0].meta.extra["note"]
     # allowed to answer misses in replay mode, because it runs no model
-    answers = CachedBackend(b, mode="replay").answer(reqs)
+    answers = Answerer(b, mode="replay").answer(reqs)
     assert [a.text for a in answers] == [a.text for a in first]

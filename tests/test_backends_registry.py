@@ -16,7 +16,7 @@ from vlmproprio.backends.registry import (
     model_slug,
     parse_model_name,
 )
-from vlmproprio.cache import write_cassette
+from vlmproprio.cassettes import write_cassette
 from vlmproprio.errors import VlmproprioError
 
 

@@ -12,7 +12,9 @@ def test_replay_imports_no_model_library(tmp_path):
         f"""
         import sys
         from vlmproprio.backends.registry import BackendSettings, create_backend
-        from vlmproprio.cache import CachedBackend, write_cassette, CacheEntry, request_key
+        from vlmproprio.cache import CacheEntry, request_key
+        from vlmproprio.cassettes import write_cassette
+        from vlmproprio.answering import Answerer
         from vlmproprio.chat import ChatRequest, Message, TextPart
         ident = {{"backend": "hf", "model_id": "Qwen/Qwen2-VL-2B-Instruct", "revision": "abc", "dtype": "bfloat16",
                  "attn_implementation": "sdpa"}}
@@ -21,7 +23,7 @@ def test_replay_imports_no_model_library(tmp_path):
         entry = CacheEntry(key=key, text="Open the door.", meta={{"backend": "hf", "model_id": "Qwen/Qwen2-VL-2B-Instruct"}}, tag={{}})
         write_cassette(r"{tmp_path}/qwen2-vl.jsonl", "qwen2-vl", ident, [entry])
         backend = create_backend("qwen2-vl", "replay", BackendSettings(cassette_dir=r"{tmp_path}"))
-        (answer,) = CachedBackend(backend, mode="replay").answer([req])
+        (answer,) = Answerer(backend, mode="replay").answer([req])
         assert answer.text == "Open the door." and answer.from_cache
         heavy = sorted(m for m in ("torch", "transformers", "openai", "huggingface_hub") if m in sys.modules)
         print("heavy:", heavy)

@@ -19,21 +19,16 @@ from pathlib import Path
 
 import pytest
 
+from vlmproprio.answering import Answerer
 from vlmproprio.backends.base import Backend, BackendError
 from vlmproprio.backends.replay import ReplayBackend
-from vlmproprio.cache import (
-    CacheCorruptError,
-    CachedBackend,
-    CacheEntry,
+from vlmproprio.cache import CacheCorruptError, CacheEntry, ResponseCache, canonical_json, key_document, request_key
+from vlmproprio.cassettes import (
     CassetteError,
     ReplayMissError,
-    ResponseCache,
-    canonical_json,
     export_cassette,
     import_cassette,
-    key_document,
     read_cassette,
-    request_key,
     write_cassette,
 )
 from vlmproprio.chat import (
@@ -257,7 +252,7 @@ def _worker(cache_dir: str, seed: int, n: int, barrier, results) -> None:
     random.Random(seed).shuffle(order)  # overlapping work in a different order per process
     backend = EchoBackend(max_batch_size=3, delay_s=0.003)
     with ResponseCache(cache_dir) as cache:
-        cb = CachedBackend(backend, mode="live", cache=cache, model="echo")
+        cb = Answerer(backend, mode="live", cache=cache, model="echo")
         barrier.wait(timeout=60)  # all four open the cache, then start together
         answers = {}
         for start in range(0, n, 5):  # several small calls, so the processes interleave
@@ -300,7 +295,7 @@ def test_live_batches_misses_dedupes_and_keeps_order(tmp_path):
     requests = [req(text=f"# Process 1\nr{i}") for i in range(7)]
     requests.insert(3, requests[1])  # the same request twice in one call
     with ResponseCache(tmp_path / "c") as cache:
-        cb = CachedBackend(backend, mode="live", cache=cache, model="echo")
+        cb = Answerer(backend, mode="live", cache=cache, model="echo")
         first = cb.answer(requests)
         assert backend.batches == [3, 3, 1]  # 7 distinct misses in batches of max_batch_size
         assert [a.text for a in first] == [expected_text(r) for r in requests]
@@ -316,12 +311,12 @@ def test_empty_answers_are_not_successes(tmp_path):
     backend = EchoBackend()
     r = req(text="# Process 1\nEMPTY please")
     with ResponseCache(tmp_path / "c") as cache:
-        assert CachedBackend(backend, mode="live", cache=cache).answer([r])[0].text == ""
+        assert Answerer(backend, mode="live", cache=cache).answer([r])[0].text == ""
         assert cache.get(request_key(IDENTITY, r)).status == "empty"
-        CachedBackend(backend, mode="live", cache=cache).answer([r])
+        Answerer(backend, mode="live", cache=cache).answer([r])
         assert backend.batches == [1, 1]  # live mode asked again
         # replay serves what the recording said, so a replay equals the live run
-        replayed = CachedBackend(backend, mode="replay", cache=cache).answer([r])
+        replayed = Answerer(backend, mode="replay", cache=cache).answer([r])
         assert replayed[0].text == "" and replayed[0].from_cache and backend.batches == [1, 1]
 
 
@@ -330,7 +325,7 @@ def test_failed_batch_keeps_what_was_answered(tmp_path):
     requests = [req(text="# Process 1\nfine 1"), req(text="# Process 1\nfine 2"), req(text="# Process 1\nBOOM")]
     with ResponseCache(tmp_path / "c") as cache:
         with pytest.raises(BackendError, match="injected"):
-            CachedBackend(backend, mode="live", cache=cache).answer(requests)
+            Answerer(backend, mode="live", cache=cache).answer(requests)
         assert sorted(cache.keys()) == sorted(request_key(IDENTITY, r) for r in requests[:2])
 
 
@@ -339,14 +334,14 @@ def test_corrupt_entry_is_recomputed_in_live_mode_and_fatal_in_replay(tmp_path, 
     r = req()
     key = request_key(IDENTITY, r)
     with ResponseCache(tmp_path / "c") as cache:
-        CachedBackend(backend, mode="live", cache=cache).answer([r])
+        Answerer(backend, mode="live", cache=cache).answer([r])
         rec = cache._cache.get(key)
         rec["text"] = "silently changed"
         cache._cache.set(key, rec)
         with pytest.raises(CacheCorruptError, match=r"checksum.*Replay mode cannot recompute"):
-            CachedBackend(backend, mode="replay", cache=cache).answer([r])
+            Answerer(backend, mode="replay", cache=cache).answer([r])
         assert backend.batches == [1]
-        live = CachedBackend(backend, mode="live", cache=cache)
+        live = Answerer(backend, mode="live", cache=cache)
         assert live.answer([r])[0].text == expected_text(r)
         assert backend.batches == [1, 1] and live.stats["corrupt"] == 1
         assert "corrupt cache entry dropped and recomputed" in caplog.text
@@ -356,7 +351,7 @@ def test_corrupt_entry_is_recomputed_in_live_mode_and_fatal_in_replay(tmp_path, 
 def test_replay_miss_names_the_request_and_how_to_record(tmp_path):
     r = req(tag=RequestTag("bin2_01", "joint", "p2", 3))
     with ResponseCache(tmp_path / "c") as cache, pytest.raises(ReplayMissError) as info:
-        CachedBackend(EchoBackend(), mode="replay", cache=cache, model="echo").answer([r])
+        Answerer(EchoBackend(), mode="replay", cache=cache, model="echo").answer([r])
     msg = str(info.value)
     for part in ("bin2_01", "stage p2", "group 3", request_key(IDENTITY, r), "record", "cassette export"):
         assert part in msg
@@ -367,7 +362,7 @@ def test_unknown_mode_is_a_usage_error():
     from vlmproprio.errors import UsageError
 
     with pytest.raises(UsageError, match="replay, live, record"):
-        CachedBackend(EchoBackend(), mode="fast")
+        Answerer(EchoBackend(), mode="fast")
 
 
 # ---------------------------------------------------------------------------------------------- cassettes
@@ -375,7 +370,7 @@ def test_unknown_mode_is_a_usage_error():
 
 def _recorded(tmp_path: Path, n: int = 5) -> tuple[Path, list[ChatRequest]]:
     requests = [req(text=f"# Process 1\nr{i}") for i in range(n)]
-    cb = CachedBackend(EchoBackend(), mode="record", cache=None, model="echo")
+    cb = Answerer(EchoBackend(), mode="record", cache=None, model="echo")
     cb.answer(requests)
     return cb.export_cassette(tmp_path / "echo.jsonl"), requests
 
@@ -389,7 +384,7 @@ def test_record_then_replay_from_the_cassette(tmp_path):
     assert json.loads(lines[0])["identity"] == IDENTITY
     replay = ReplayBackend(path)
     assert replay.identity() == IDENTITY and replay.calls_model is False
-    answers = CachedBackend(replay, mode="replay").answer(requests)
+    answers = Answerer(replay, mode="replay").answer(requests)
     assert [a.text for a in answers] == [expected_text(r) for r in requests]
     assert all(a.from_cache for a in answers)
     # writing the same answers again gives the same bytes (diff-friendly, deterministic)
@@ -404,7 +399,7 @@ def test_record_then_replay_from_the_cassette(tmp_path):
 
 def test_cassette_merge_keeps_old_answers_and_refuses_another_identity(tmp_path):
     path, _requests = _recorded(tmp_path, 3)
-    extra = CachedBackend(EchoBackend(), mode="record", model="echo")
+    extra = Answerer(EchoBackend(), mode="record", model="echo")
     extra.answer([req(text="# Process 1\nnew one")])
     before = path.read_text().splitlines()
     extra.export_cassette(path)
@@ -449,7 +444,7 @@ def test_replay_backend_miss(tmp_path):
     path, _ = _recorded(tmp_path, 2)
     r = req(text="# Process 3\nnever recorded", tag=RequestTag("door_04", "ee", "p3", -1))
     with pytest.raises(ReplayMissError, match=r"door_04.*stage p3.*cassette .*echo\.jsonl"):
-        CachedBackend(ReplayBackend(path), mode="replay").answer([r])
+        Answerer(ReplayBackend(path), mode="replay").answer([r])
 
 
 def test_export_and_import_through_the_cli(tmp_path, capsys):
@@ -457,7 +452,7 @@ def test_export_and_import_through_the_cli(tmp_path, capsys):
 
     requests = [req(text=f"# Process 2\ng{i}") for i in range(3)]
     with ResponseCache(tmp_path / "c1") as cache:
-        CachedBackend(EchoBackend(), mode="live", cache=cache, model="openai_echo").answer(requests)
+        Answerer(EchoBackend(), mode="live", cache=cache, model="openai_echo").answer(requests)
     out = tmp_path / "responses"
     assert (
         main(
@@ -478,7 +473,7 @@ def test_export_and_import_through_the_cli(tmp_path, capsys):
     assert len(read_cassette(cassette).entries) == 3
     assert main(["cassette", "import", str(cassette), "--cache-dir", str(tmp_path / "c2")]) == 0
     with ResponseCache(tmp_path / "c2") as cache:
-        answers = CachedBackend(EchoBackend(), mode="replay", cache=cache).answer(requests)
+        answers = Answerer(EchoBackend(), mode="replay", cache=cache).answer(requests)
     assert [a.text for a in answers] == [expected_text(r) for r in requests]
     # a model with nothing in the cache is a clean one-line error, not a traceback
     assert (

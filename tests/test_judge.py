@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from scoring_helpers import prefill_embeddings, write_synthetic_run
-from vlmproprio.cache import read_cassette
+from vlmproprio.cassettes import read_cassette
 from vlmproprio.cli import main
 from vlmproprio.embeddings import encoder_spec
 from vlmproprio.report.data import load_run_scores

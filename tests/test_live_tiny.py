@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from vlmproprio.cache import read_cassette
+from vlmproprio.cassettes import read_cassette
 from vlmproprio.conditions import parse_conditions
 from vlmproprio.episodes import load_episode
 from vlmproprio.pipeline import calls_per_episode

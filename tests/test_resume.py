@@ -7,9 +7,10 @@ from pathlib import Path
 
 import pytest
 
+from vlmproprio.answering import Answerer
 from vlmproprio.backends.base import Backend
 from vlmproprio.backends.reference import ReferenceBackend
-from vlmproprio.cache import CachedBackend, ResponseCache
+from vlmproprio.cache import ResponseCache
 from vlmproprio.chat import Answer, ChatRequest
 from vlmproprio.conditions import parse_conditions
 from vlmproprio.episodes import load_episodes
@@ -49,7 +50,7 @@ def test_resume_asks_only_for_what_is_missing(tmp_path: Path, stop_after: int) -
 
     def run(backend: Backend, cache_dir: Path):
         with ResponseCache(cache_dir) as cache:
-            cached = CachedBackend(backend, mode="live", cache=cache, model="reference")
+            cached = Answerer(backend, mode="live", cache=cache, model="reference")
             return caption_episodes(episodes, conds, cached.answer, "reference", progress=False)
 
     straight = Counting()

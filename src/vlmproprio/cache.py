@@ -1,4 +1,4 @@
-"""Content-addressed answers: the request key, the on-disk response cache, cassettes, and cached answering.
+"""Content-addressed answers: the request key and the on-disk response cache.
 
 The request key
 ---------------
@@ -28,21 +28,18 @@ group), not the device, batch size, base URL or API key. Identity fields
 other than the five above are ignored, so an answer recorded on a GPU replays
 on a CPU. Dict order never matters (keys are sorted); list order does.
 
-Entries, the cache and cassettes
---------------------------------
+Entries and the cache
+---------------------
 An answer is stored as a JSON object (never a pickle) with a ``checksum``: the
 sha256 of the canonical JSON of all its other fields. A value whose checksum
 does not match, or that cannot be decoded, is *corrupt*: in live mode it is
-dropped and recomputed, in replay mode it is a fatal error.
+dropped and recomputed, in replay mode it is a fatal error (vlmproprio.answering).
 
-* ``ResponseCache``: a ``diskcache`` directory (SQLite + WAL) shared by any
-  number of processes. Values are JSON through a disk class that refuses to
-  unpickle anything, and the first writer of a key wins (``add``), so an
-  answer is stored once.
-* Cassettes, ``fixtures/responses/<model slug>.jsonl``: line 1 is a header
-  (model name, identity, key version, checksum), then one answer per line
-  ``{key, text, meta, tag, status, checksum}`` sorted by key, each line a
-  compact JSON object with sorted keys, so re-recording gives small diffs.
+``ResponseCache`` is a ``diskcache`` directory (SQLite + WAL) shared by any
+number of processes. Values are JSON through a disk class that refuses to
+unpickle anything, and the first writer of a key wins (``add``), so an
+answer is stored once. The cassette file format is vlmproprio.cassettes;
+answering from cache, cassette or model is vlmproprio.answering.
 
 Answer statuses: ``ok``, or ``empty`` (the model answered nothing). Empty
 answers are kept so that a replay gives exactly what the live run gave, but
@@ -59,27 +56,19 @@ import logging
 import sqlite3
 import time
 import zlib
-from collections.abc import Iterable, Iterator, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Literal
 
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart, RequestTag
-from vlmproprio.errors import UsageError, VlmproprioError
-from vlmproprio.io import atomic_write_text, loads_json, write_error, writing
-from vlmproprio.secrets import scrub, scrub_obj
-
-if TYPE_CHECKING:  # type only: cache comes before backends in the stage order
-    from vlmproprio.backends.base import Backend
+from vlmproprio.errors import VlmproprioError
+from vlmproprio.io import write_error, writing
 
 log = logging.getLogger(__name__)
 
 KEY_VERSION = 1
-CASSETTE_VERSION = 1
 IDENTITY_FIELDS: tuple[str, ...] = ("backend", "model_id", "revision", "dtype", "attn_implementation")
 STATUSES: tuple[str, ...] = ("ok", "empty")
-Mode = Literal["replay", "live", "record"]
-MODES: tuple[str, ...] = ("replay", "live", "record")
 # The response cache is the cache folder itself (its cache.db); embeddings/ and models/ sit beside that file, so
 # `--cache-dir DIR` names one folder for every cache and DIR/cache.db is where a run's answers are.
 
@@ -94,19 +83,6 @@ class CacheCorruptError(CacheError):
     def __init__(self, message: str, key: str = "") -> None:
         super().__init__(message)
         self.key = key
-
-
-class CassetteError(VlmproprioError):
-    """A cassette file that cannot be used; the message names the file and line."""
-
-
-class ReplayMissError(VlmproprioError):
-    """Replay mode met a request that no recording answers."""
-
-    def __init__(self, message: str, key: str, tag: RequestTag) -> None:
-        super().__init__(message)
-        self.key = key
-        self.tag = tag
 
 
 # ---------------------------------------------------------------------------------------------- canonical JSON
@@ -200,7 +176,7 @@ class CacheEntry:
         return rec
 
 
-def _entry_from_record(rec: object, *, model: str = "", identity: dict | None = None) -> CacheEntry:
+def entry_from_record(rec: object, *, model: str = "", identity: dict | None = None) -> CacheEntry:
     """Validate a decoded record (cache value or cassette line); raises ValueError saying what is wrong."""
     if not isinstance(rec, dict):
         raise ValueError(f"expected a JSON object, got {type(rec).__name__}")
@@ -312,7 +288,7 @@ class ResponseCache:
         if rec is None:
             return None
         try:
-            entry = _entry_from_record(rec)
+            entry = entry_from_record(rec)
         except ValueError as exc:
             raise CacheCorruptError(f"{self._where(key)}: {exc}", key) from exc
         if entry.key != key:
@@ -391,297 +367,3 @@ class ResponseCache:
 
     def _where(self, key: str) -> str:
         return f"cache {self.directory}, entry {key}"
-
-
-# ---------------------------------------------------------------------------------------------- cassettes
-
-
-@dataclass(frozen=True)
-class Cassette:
-    """A frozen set of answers for one model identity."""
-
-    path: Path
-    model: str
-    identity: dict[str, str]
-    entries: dict[str, CacheEntry]
-
-
-def cassette_header(model: str, identity: dict) -> dict:
-    head = {
-        "cassette": CASSETTE_VERSION,
-        "key_version": KEY_VERSION,
-        "model": model,
-        "identity": key_identity(identity),
-    }
-    head["checksum"] = checksum(head)
-    return head
-
-
-def read_cassette(path: Path | str) -> Cassette:
-    """Load and verify a cassette; any bad line is a CassetteError naming the file and line number."""
-    path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise CassetteError(f"{path}: cannot read cassette ({exc.strerror or exc})") from exc
-    lines = raw.split(b"\n")
-    if lines and lines[-1] == b"":
-        lines.pop()
-    if not lines:
-        raise CassetteError(f"{path}:1: empty cassette (no header line)")
-
-    def parse(lineno: int, data: bytes) -> dict:
-        obj = loads_json(data, f"{path}:{lineno}", error=CassetteError)
-        if not isinstance(obj, dict):
-            raise CassetteError(f"{path}:{lineno}: expected a JSON object")
-        return obj
-
-    head = parse(1, lines[0])
-    if head.get("cassette") != CASSETTE_VERSION or head.get("key_version") != KEY_VERSION:
-        raise CassetteError(
-            f"{path}:1: not a version-{CASSETTE_VERSION} cassette header "
-            f"(cassette={head.get('cassette')!r}, key_version={head.get('key_version')!r})"
-        )
-    if checksum(head) != head.get("checksum"):
-        raise CassetteError(f"{path}:1: header checksum mismatch (the header was changed or damaged)")
-    if not isinstance(head.get("identity"), dict) or not isinstance(head.get("model"), str):
-        raise CassetteError(f"{path}:1: header lacks 'model' or 'identity'")
-    model, identity = head["model"], key_identity(head["identity"])
-    entries: dict[str, CacheEntry] = {}
-    previous = ""
-    for i, data in enumerate(lines[1:], start=2):
-        rec = parse(i, data)
-        try:
-            entry = _entry_from_record(rec, model=model, identity=identity)
-        except ValueError as exc:
-            raise CassetteError(f"{path}:{i}: bad answer line: {exc}") from exc
-        if entry.key <= previous:
-            raise CassetteError(f"{path}:{i}: keys not strictly increasing (duplicate or unsorted line)")
-        previous = entry.key
-        entries[entry.key] = replace(entry, model=model, identity=identity)
-    return Cassette(path=path, model=model, identity=identity, entries=entries)
-
-
-def write_cassette(
-    path: Path | str, model: str, identity: dict, entries: Iterable[CacheEntry], *, merge: bool = True
-) -> Path:
-    """Write (atomically) a cassette with ``entries``; with ``merge``, keep the answers already in ``path``.
-
-    Merging into a cassette recorded from another identity is refused: one file, one model identity.
-    """
-    path = Path(path)
-    ident = key_identity(identity)
-    merged: dict[str, CacheEntry] = {}
-    old = None
-    if path.exists():
-        try:
-            old = read_cassette(path)
-        except CassetteError:
-            if merge:
-                raise
-            # --replace over a damaged file: nothing readable to protect
-    if old is not None:
-        if old.model != model:
-            # never advise deleting it: that file holds another model's answers
-            raise CassetteError(
-                f"{path} holds the answers of another model ({old.model}), not of {model}; refusing to overwrite "
-                "it: write this cassette to another file (`vlmproprio cassette export --model MODEL --out FILE`)"
-            )
-        if merge and old.identity != ident:
-            raise CassetteError(
-                f"{path}: recorded from {_describe(old.identity)}, not {_describe(ident)} ({len(old.entries)} answers "
-                f"of {model}); one cassette holds one identity: write this one to another file "
-                "(`vlmproprio cassette export --model MODEL --out FILE`)"
-            )
-        if merge:
-            merged.update(old.entries)
-    for e in map(scrubbed_entry, entries):
-        old = merged.get(e.key)
-        if old is None or (old.text, old.status) != (e.text, e.status):
-            merged[e.key] = e  # an unchanged answer keeps its old line (and latency): re-recording diffs stay small
-    lines = [canonical_json(cassette_header(model, ident))]
-    lines += [canonical_json(merged[k].cassette_record()) for k in sorted(merged)]
-    atomic_write_text(path, "\n".join(lines) + "\n")
-    return path
-
-
-def _describe(identity: dict) -> str:
-    return ", ".join(f"{k} {v}" for k, v in identity.items() if v)
-
-
-def scrubbed_entry(entry: CacheEntry) -> CacheEntry:
-    """``entry`` with secrets masked in its answer text and metadata (unchanged when it holds none)."""
-    text, meta = scrub(entry.text), scrub_obj(entry.meta)
-    return entry if (text, meta) == (entry.text, entry.meta) else replace(entry, text=text, meta=meta)
-
-
-def export_cassette(cache: ResponseCache, model: str, path: Path | str, *, merge: bool = True) -> tuple[Path, int]:
-    """Write every cached answer of ``model`` (its slug as stored in the cache) to a cassette."""
-    entries = list(cache.entries(model=model))
-    if not entries:
-        present = cache.models()
-        listed = ", ".join(f"{m} ({n})" for m, n in sorted(present.items())) or "nothing"
-        raise CacheError(
-            f"cache {cache.directory} holds no answers for model {model!r} (it holds: {listed}); "
-            "run the model in live or record mode first"
-        )
-    identities = {canonical_json(e.identity) for e in entries}
-    if len(identities) > 1:
-        listed = "; ".join(sorted(identities))
-        raise CacheError(
-            f"cache {cache.directory} holds answers of {model!r} from {len(identities)} different identities "
-            f"({listed}); a cassette holds one: use a fresh cache directory per model revision"
-        )
-    return write_cassette(path, model, entries[0].identity, entries, merge=merge), len(entries)
-
-
-def import_cassette(cache: ResponseCache, path: Path | str) -> tuple[str, int]:
-    """Copy a cassette's answers into the cache; returns (model, number of entries newly stored)."""
-    cas = read_cassette(path)
-    stored = sum(cache.store(e) for e in cas.entries.values())
-    return cas.model, stored
-
-
-# ---------------------------------------------------------------------------------------------- cached answering
-
-
-def replay_miss_message(model: str, key: str, tag: RequestTag, where: str) -> str:
-    return (
-        f"no recorded answer for {tag} (key {key}) in {where}. Replay mode never calls a model: record it by "
-        f"running it in record mode where it can run (`vlmproprio run --model {model} --mode record`, which writes "
-        f"<fixtures>/responses/{model}.jsonl; answers already in a response cache: "
-        f"`vlmproprio cassette export --model {model}`) and commit the cassette"
-    )
-
-
-class CachedBackend:
-    """Answers requests from the cache where it can and from ``backend`` where it must.
-
-    Modes:
-
-    * ``live``: serve hits, send misses to the backend in the batches ``backend.plan_batches`` makes
-      (at most ``backend.max_batch_size`` each), store each batch's answers as soon as it returns. A corrupt entry is dropped and recomputed.
-    * ``record``: as live, and every answer used is kept in :attr:`used` for
-      :meth:`export_cassette`.
-    * ``replay``: never call a model: hits from the cache (if one is given; a corrupt entry is
-      fatal), misses only from a backend that does not call a model (a cassette, the reference
-      captioner); any other miss is a ReplayMissError naming the request.
-    """
-
-    def __init__(self, backend: Backend, *, mode: str, cache: ResponseCache | None = None, model: str = "") -> None:
-        """``model``: the model's slug (``registry.model_slug(name)``), stored with each answer so that
-        ``vlmproprio cassette export --model NAME`` finds them; defaults to the identity's model_id."""
-        if mode not in MODES:
-            raise UsageError(f"unknown mode {mode!r}; choose from {', '.join(MODES)}")
-        self.backend = backend
-        self.mode: Mode = mode  # type: ignore[assignment]
-        self.cache = cache
-        self.identity = key_identity(backend.identity())
-        self.model = model or self.identity["model_id"]
-        self.used: dict[str, CacheEntry] = {}
-        self.stats = {"hits": 0, "misses": 0, "stored": 0, "corrupt": 0}
-
-    # -------------------------------------------------------------------------------- public
-    def key(self, request: ChatRequest) -> str:
-        return request_key(self.identity, request)
-
-    def answer(self, requests: Sequence[ChatRequest]) -> list[Answer]:
-        """One answer per request, in request order, with ``key`` and ``from_cache`` set."""
-        keys = [self.key(r) for r in requests]
-        results: list[Answer | None] = [None] * len(requests)
-        todo: dict[str, int] = {}  # key -> first request index that needs the backend
-        for i, key in enumerate(keys):
-            if key in todo:
-                continue
-            entry = self._lookup(key)
-            if entry is not None:
-                self.stats["hits"] += 1
-                self._use(entry)
-                results[i] = entry.to_answer(from_cache=True)
-            else:
-                todo[key] = i
-        if todo:
-            self._answer_misses(requests, todo, results)
-        by_key = {k: a for k, a in zip(keys, results, strict=True) if a is not None}
-        out = [a if a is not None else by_key[k] for k, a in zip(keys, results, strict=True)]
-        return out
-
-    def export_cassette(self, path: Path | str, *, merge: bool = True) -> Path:
-        """Write the answers used in this session (record mode) to a cassette."""
-        if not self.used:
-            raise CacheError("nothing to export: no answers were used in this session")
-        return write_cassette(path, self.model, self.identity, self.used.values(), merge=merge)
-
-    # -------------------------------------------------------------------------------- internals
-    def _lookup(self, key: str) -> CacheEntry | None:
-        if self.cache is None:
-            return None
-        try:
-            entry = self.cache.get(key)
-        except CacheCorruptError as exc:
-            self.stats["corrupt"] += 1
-            if self.mode == "replay":
-                raise CacheCorruptError(
-                    f"{exc}. Replay mode cannot recompute it: delete {self.cache.directory} and re-import the "
-                    "cassette (`vlmproprio cassette import CASSETTE.jsonl`), or run in live mode (--mode live)",
-                    key,
-                ) from exc
-            log.warning("corrupt cache entry dropped and recomputed: %s", exc)
-            self.cache.delete(key)
-            return None
-        if entry is not None and entry.status != "ok" and self.mode != "replay":
-            return None  # an empty answer is not a success: ask again
-        return entry
-
-    def _answer_misses(self, requests: Sequence[ChatRequest], todo: dict[str, int], results: list) -> None:
-        if self.mode == "replay" and getattr(self.backend, "calls_model", True):
-            key, i = next(iter(todo.items()))
-            where = f"cache {self.cache.directory}" if self.cache is not None else "the cache (none given)"
-            raise ReplayMissError(replay_miss_message(self.model, key, requests[i].tag, where), key, requests[i].tag)
-        items = list(todo.items())
-        # the backend groups its misses (a local model puts alike shapes together); answers are stored per batch
-        for plan in self.backend.plan_batches([requests[i] for _, i in items]):
-            batch = [items[j] for j in plan]
-            batch_requests = [requests[i] for _, i in batch]
-            self.stats["misses"] += len(batch)
-            try:
-                answers = self.backend.generate(batch_requests)
-            except VlmproprioError as exc:  # BackendError and kin
-                # keep whatever the backend finished before it gave up (a dead server mid-batch)
-                for (key, i), ans in zip(batch, getattr(exc, "partial", ()) or (), strict=False):
-                    if ans is not None:
-                        results[i] = self._keep(key, requests[i], ans)
-                raise
-            if len(answers) != len(batch):
-                raise CacheError(
-                    f"backend {self.identity['backend']} returned {len(answers)} answers for {len(batch)} requests"
-                )
-            for (key, i), ans in zip(batch, answers, strict=True):
-                results[i] = self._keep(key, requests[i], ans)
-
-    def _keep(self, key: str, request: ChatRequest, answer: Answer) -> Answer:
-        # a server that echoes the API key in an answer must not get it into the cache, cassette or transcripts
-        text = scrub(answer.text)
-        if text != answer.text:
-            answer = replace(answer, text=text)
-        entry = scrubbed_entry(CacheEntry.from_answer(key, answer, request.tag, self.model, self.identity))
-        if self.cache is not None and self.mode != "replay" and self.cache.store(entry):
-            self.stats["stored"] += 1
-        self._use(entry)
-        return replace(answer, key=key)
-
-    def _use(self, entry: CacheEntry) -> None:
-        if self.mode == "record":
-            self.used[entry.key] = entry
-
-
-def answer(
-    requests: Sequence[ChatRequest],
-    backend: Backend,
-    cache: ResponseCache | None,
-    mode: str,
-    *,
-    model: str = "",
-) -> list[Answer]:
-    """One-shot form of ``CachedBackend(backend, mode=mode, cache=cache, model=model).answer(requests)``."""
-    return CachedBackend(backend, mode=mode, cache=cache, model=model).answer(requests)

@@ -117,7 +117,8 @@ def cmd_make_tiny_model(args: argparse.Namespace) -> int:
 
 def cmd_cassette(args: argparse.Namespace) -> int:
     from vlmproprio.backends.registry import cassette_path, model_slug
-    from vlmproprio.cache import ResponseCache, export_cassette, import_cassette
+    from vlmproprio.cache import ResponseCache
+    from vlmproprio.cassettes import export_cassette, import_cassette
     from vlmproprio.episodes import register_fixture_file
 
     cache_dir = cache_root_of(args)  # the response cache is the cache folder's cache.db

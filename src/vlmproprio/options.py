@@ -15,8 +15,12 @@ from vlmproprio.errors import UsageError
 # The mode default: `auto` replays a model's committed cassette when <fixtures>/responses/ has one and runs the
 # model otherwise, so the benchmark is offline by default and a new model needs no extra flag. The same in the
 # CLI, pytest and tox.
-MODES = ("auto", "replay", "live", "record")
-DEFAULT_MODE = "auto"
+# What answers a request: a cassette only, the model (through the response cache), or the model with its answers
+# written to the cassette (vlmproprio.answering); `auto` picks replay or live per model.
+ANSWER_MODES = ("replay", "live", "record")
+AUTO_MODE = "auto"
+MODES = (AUTO_MODE, *ANSWER_MODES)
+DEFAULT_MODE = AUTO_MODE
 DEFAULT_CONDITIONS = "all"
 
 MODEL_HELP = (

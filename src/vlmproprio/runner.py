@@ -143,8 +143,9 @@ def _write_run_file(
 
 
 def run_model(name: str, plan: RunPlan, episodes: list[Episode], peers: list[Episode], settings) -> ModelRun:
+    from vlmproprio.answering import Answerer
     from vlmproprio.backends.registry import cassette_path, create_backend, model_slug, resolve_mode
-    from vlmproprio.cache import CachedBackend, ResponseCache, default_cache_dir
+    from vlmproprio.cache import ResponseCache, default_cache_dir
 
     slug = model_slug(name)
     mode = resolve_mode(name, plan.mode, settings)  # auto: replay with a cassette, else live
@@ -152,7 +153,7 @@ def run_model(name: str, plan: RunPlan, episodes: list[Episode], peers: list[Epi
     # replay answers strictly from the committed cassette: a stale local cache must not mask a missing answer
     cache = None if mode == "replay" else ResponseCache(plan.cache_dir or default_cache_dir())
     try:
-        cached = CachedBackend(backend, mode=mode, cache=cache, model=slug)
+        cached = Answerer(backend, mode=mode, cache=cache, model=slug)
         pipeline = plan.pipeline_for(name)
         transcripts = caption_episodes(
             episodes,

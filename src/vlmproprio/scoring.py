@@ -1073,13 +1073,13 @@ def parse_judge_answer(raw: str) -> JudgeVerdict:
 def judge_captions(judge, captions: Sequence[tuple[str, Episode, str]]) -> list[JudgeVerdict]:
     """Grade (text, episode, condition) triples, in order.
 
-    ``judge`` is a ``cache.CachedBackend`` (see :func:`judge_session`): its requests go through the same
+    ``judge`` is a ``cache.Answerer`` (see :func:`judge_session`): its requests go through the same
     content-addressed response cache and cassettes as captioning, so a judge's verdicts replay
-    bit-identically. A plain Backend is wrapped in a CachedBackend without a store (same keys, batches)."""
+    bit-identically. A plain Backend is wrapped in a Answerer without a store (same keys, batches)."""
+    from vlmproprio.answering import Answerer
     from vlmproprio.backends.base import BackendError
-    from vlmproprio.cache import CachedBackend
 
-    cached = judge if isinstance(judge, CachedBackend) else CachedBackend(judge, mode="live")
+    cached = judge if isinstance(judge, Answerer) else Answerer(judge, mode="live")
     requests = [judge_request(text, ep, cond) for text, ep, cond in captions]
     answers = cached.answer(requests) if requests else []
     if len(answers) != len(requests):
@@ -1092,14 +1092,15 @@ def judge_session(name: str, mode: str, settings, cache_dir: Path | str | None =
     """A judge model as captioning runs one: registry backend, response cache (none in replay, where answers
     come only from the cassette), and in record mode the answers used written to the model's cassette
     (``settings.cassette_dir``/<slug>.jsonl, merged with what it holds) and registered in the fixture manifest."""
+    from vlmproprio.answering import Answerer
     from vlmproprio.backends.registry import cassette_path, create_backend, model_slug
-    from vlmproprio.cache import CachedBackend, ResponseCache, default_cache_dir
+    from vlmproprio.cache import ResponseCache, default_cache_dir
     from vlmproprio.episodes import register_fixture_file
 
     backend = create_backend(name, mode, settings)
     cache = None if mode == "replay" else ResponseCache(cache_dir or default_cache_dir())
     try:
-        cached = CachedBackend(backend, mode=mode, cache=cache, model=model_slug(name))
+        cached = Answerer(backend, mode=mode, cache=cache, model=model_slug(name))
         yield cached
         if mode == "record" and cached.used:
             path = cassette_path(name, settings.cassette_dir)

@@ -10,7 +10,7 @@
 * Cache entries: entries damaged in the SQLite file in five ways are reported (one warning line each) and
   recomputed by ``vlmproprio run`` in live mode, which then gives the transcripts of a clean run. Replay
   through the CLI never reads the response cache (only the committed cassette); that a corrupt entry is fatal
-  for a replaying ``CachedBackend`` is checked in
+  for a replaying ``Answerer`` is checked in
   tests/test_cache.py::test_corrupt_entry_is_recomputed_in_live_mode_and_fatal_in_replay.
 """
 
@@ -34,7 +34,7 @@ from reliability_support import (
     transcripts_of,
 )
 
-from vlmproprio.cache import CassetteError, read_cassette
+from vlmproprio.cassettes import CassetteError, read_cassette
 from vlmproprio.episodes import EpisodeError, load_episodes, read_manifest, verify_files
 from vlmproprio.testing.openai_server import FakeOpenAIServer
 

@@ -14,7 +14,7 @@ gets the same revision on every machine.
 Batching: ``plan_batches`` groups the requests it is given by shape (prompt
 length with image tokens, number of images; see vlmproprio.backends.scheduling)
 into batches of ``max_batch_size`` rows and at most ``max_batch_tokens`` padded
-tokens (by default capped on a CPU only); ``CachedBackend`` asks it for the plan of a
+tokens (by default capped on a CPU only); ``Answerer`` asks it for the plan of a
 whole wave of misses, and ``generate`` uses it too, putting answers back in
 request order. Batches are padded on the left, so every row's prompt ends where
 generation starts, and batched greedy outputs equal one-by-one outputs (a test

@@ -24,8 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from vlmproprio.backends.base import Backend, BackendError
-from vlmproprio.cache import MODES
 from vlmproprio.errors import UsageError
+from vlmproprio.options import ANSWER_MODES as MODES
 
 AUTO_MODE = "auto"  # replay when a cassette exists, else live (vlmproprio.options.DEFAULT_MODE)
 HF_PREFIX = "hf:"

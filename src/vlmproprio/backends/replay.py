@@ -13,7 +13,8 @@ from dataclasses import replace
 from pathlib import Path
 
 from vlmproprio.backends.base import Backend
-from vlmproprio.cache import Cassette, ReplayMissError, read_cassette, replay_miss_message, request_key
+from vlmproprio.cache import request_key
+from vlmproprio.cassettes import Cassette, ReplayMissError, read_cassette, replay_miss_message
 from vlmproprio.chat import Answer, ChatRequest
 
 

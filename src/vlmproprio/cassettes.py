@@ -1,0 +1,200 @@
+"""Cassettes: a model's answers frozen in one file, committed beside the fixtures.
+
+``fixtures/responses/<model slug>.jsonl``: line 1 is a header (model name,
+identity, key version, checksum), then one answer per line
+``{key, text, meta, tag, status, checksum}`` sorted by key, each line a
+compact JSON object with sorted keys, so re-recording gives small diffs. Keys
+and entries are those of vlmproprio.cache; a line whose checksum does not
+match is an error naming the file and line.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from vlmproprio.cache import (
+    KEY_VERSION,
+    CacheEntry,
+    CacheError,
+    ResponseCache,
+    canonical_json,
+    checksum,
+    entry_from_record,
+    key_identity,
+)
+from vlmproprio.chat import RequestTag
+from vlmproprio.errors import VlmproprioError
+from vlmproprio.io import atomic_write_text, loads_json
+from vlmproprio.secrets import scrub, scrub_obj
+
+CASSETTE_VERSION = 1
+
+
+class CassetteError(VlmproprioError):
+    """A cassette file that cannot be used; the message names the file and line."""
+
+
+class ReplayMissError(VlmproprioError):
+    """Replay mode met a request that no recording answers."""
+
+    def __init__(self, message: str, key: str, tag: RequestTag) -> None:
+        super().__init__(message)
+        self.key = key
+        self.tag = tag
+
+
+def replay_miss_message(model: str, key: str, tag: RequestTag, where: str) -> str:
+    return (
+        f"no recorded answer for {tag} (key {key}) in {where}. Replay mode never calls a model: record it by "
+        f"running it in record mode where it can run (`vlmproprio run --model {model} --mode record`, which writes "
+        f"<fixtures>/responses/{model}.jsonl; answers already in a response cache: "
+        f"`vlmproprio cassette export --model {model}`) and commit the cassette"
+    )
+
+
+@dataclass(frozen=True)
+class Cassette:
+    """A frozen set of answers for one model identity."""
+
+    path: Path
+    model: str
+    identity: dict[str, str]
+    entries: dict[str, CacheEntry]
+
+
+def cassette_header(model: str, identity: dict) -> dict:
+    head = {
+        "cassette": CASSETTE_VERSION,
+        "key_version": KEY_VERSION,
+        "model": model,
+        "identity": key_identity(identity),
+    }
+    head["checksum"] = checksum(head)
+    return head
+
+
+def read_cassette(path: Path | str) -> Cassette:
+    """Load and verify a cassette; any bad line is a CassetteError naming the file and line number."""
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise CassetteError(f"{path}: cannot read cassette ({exc.strerror or exc})") from exc
+    lines = raw.split(b"\n")
+    if lines and lines[-1] == b"":
+        lines.pop()
+    if not lines:
+        raise CassetteError(f"{path}:1: empty cassette (no header line)")
+
+    def parse(lineno: int, data: bytes) -> dict:
+        obj = loads_json(data, f"{path}:{lineno}", error=CassetteError)
+        if not isinstance(obj, dict):
+            raise CassetteError(f"{path}:{lineno}: expected a JSON object")
+        return obj
+
+    head = parse(1, lines[0])
+    if head.get("cassette") != CASSETTE_VERSION or head.get("key_version") != KEY_VERSION:
+        raise CassetteError(
+            f"{path}:1: not a version-{CASSETTE_VERSION} cassette header "
+            f"(cassette={head.get('cassette')!r}, key_version={head.get('key_version')!r})"
+        )
+    if checksum(head) != head.get("checksum"):
+        raise CassetteError(f"{path}:1: header checksum mismatch (the header was changed or damaged)")
+    if not isinstance(head.get("identity"), dict) or not isinstance(head.get("model"), str):
+        raise CassetteError(f"{path}:1: header lacks 'model' or 'identity'")
+    model, identity = head["model"], key_identity(head["identity"])
+    entries: dict[str, CacheEntry] = {}
+    previous = ""
+    for i, data in enumerate(lines[1:], start=2):
+        rec = parse(i, data)
+        try:
+            entry = entry_from_record(rec, model=model, identity=identity)
+        except ValueError as exc:
+            raise CassetteError(f"{path}:{i}: bad answer line: {exc}") from exc
+        if entry.key <= previous:
+            raise CassetteError(f"{path}:{i}: keys not strictly increasing (duplicate or unsorted line)")
+        previous = entry.key
+        entries[entry.key] = replace(entry, model=model, identity=identity)
+    return Cassette(path=path, model=model, identity=identity, entries=entries)
+
+
+def write_cassette(
+    path: Path | str, model: str, identity: dict, entries: Iterable[CacheEntry], *, merge: bool = True
+) -> Path:
+    """Write (atomically) a cassette with ``entries``; with ``merge``, keep the answers already in ``path``.
+
+    Merging into a cassette recorded from another identity is refused: one file, one model identity.
+    """
+    path = Path(path)
+    ident = key_identity(identity)
+    merged: dict[str, CacheEntry] = {}
+    old = None
+    if path.exists():
+        try:
+            old = read_cassette(path)
+        except CassetteError:
+            if merge:
+                raise
+            # --replace over a damaged file: nothing readable to protect
+    if old is not None:
+        if old.model != model:
+            # never advise deleting it: that file holds another model's answers
+            raise CassetteError(
+                f"{path} holds the answers of another model ({old.model}), not of {model}; refusing to overwrite "
+                "it: write this cassette to another file (`vlmproprio cassette export --model MODEL --out FILE`)"
+            )
+        if merge and old.identity != ident:
+            raise CassetteError(
+                f"{path}: recorded from {_describe(old.identity)}, not {_describe(ident)} ({len(old.entries)} answers "
+                f"of {model}); one cassette holds one identity: write this one to another file "
+                "(`vlmproprio cassette export --model MODEL --out FILE`)"
+            )
+        if merge:
+            merged.update(old.entries)
+    for e in map(scrubbed_entry, entries):
+        old = merged.get(e.key)
+        if old is None or (old.text, old.status) != (e.text, e.status):
+            merged[e.key] = e  # an unchanged answer keeps its old line (and latency): re-recording diffs stay small
+    lines = [canonical_json(cassette_header(model, ident))]
+    lines += [canonical_json(merged[k].cassette_record()) for k in sorted(merged)]
+    atomic_write_text(path, "\n".join(lines) + "\n")
+    return path
+
+
+def _describe(identity: dict) -> str:
+    return ", ".join(f"{k} {v}" for k, v in identity.items() if v)
+
+
+def scrubbed_entry(entry: CacheEntry) -> CacheEntry:
+    """``entry`` with secrets masked in its answer text and metadata (unchanged when it holds none)."""
+    text, meta = scrub(entry.text), scrub_obj(entry.meta)
+    return entry if (text, meta) == (entry.text, entry.meta) else replace(entry, text=text, meta=meta)
+
+
+def export_cassette(cache: ResponseCache, model: str, path: Path | str, *, merge: bool = True) -> tuple[Path, int]:
+    """Write every cached answer of ``model`` (its slug as stored in the cache) to a cassette."""
+    entries = list(cache.entries(model=model))
+    if not entries:
+        present = cache.models()
+        listed = ", ".join(f"{m} ({n})" for m, n in sorted(present.items())) or "nothing"
+        raise CacheError(
+            f"cache {cache.directory} holds no answers for model {model!r} (it holds: {listed}); "
+            "run the model in live or record mode first"
+        )
+    identities = {canonical_json(e.identity) for e in entries}
+    if len(identities) > 1:
+        listed = "; ".join(sorted(identities))
+        raise CacheError(
+            f"cache {cache.directory} holds answers of {model!r} from {len(identities)} different identities "
+            f"({listed}); a cassette holds one: use a fresh cache directory per model revision"
+        )
+    return write_cassette(path, model, entries[0].identity, entries, merge=merge), len(entries)
+
+
+def import_cassette(cache: ResponseCache, path: Path | str) -> tuple[str, int]:
+    """Copy a cassette's answers into the cache; returns (model, number of entries newly stored)."""
+    cas = read_cassette(path)
+    stored = sum(cache.store(e) for e in cas.entries.values())
+    return cas.model, stored
