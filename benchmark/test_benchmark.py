@@ -28,9 +28,7 @@ def _usable(config, path, columns=None):
 
 
 def _slug(cell) -> str:
-    from vlmproprio.backends.registry import model_slug
-
-    return model_slug(cell.cell.model)
+    return cell.cell.model.slug
 
 
 def test_counts(bench_cell, data_regression, pytestconfig) -> None:

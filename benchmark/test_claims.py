@@ -39,14 +39,12 @@ def test_expectations_name_known_hypotheses() -> None:
 
 @pytest.mark.parametrize("hypothesis", [h.id for h in CLAIMS.hypotheses])
 def test_primary_verdict(bench_model, bench_session, hypothesis: str) -> None:
-    from vlmproprio.backends.registry import model_slug
-
     _require_full_run(bench_model, bench_session)
     h = next(h for h in CLAIMS.hypotheses if h.id == hypothesis)
     missing = {h.a, h.b} - set(bench_model.conditions)
     if missing:
         pytest.skip(f"{hypothesis} needs condition(s) {', '.join(sorted(missing))} (see --conditions)")
-    slug = model_slug(bench_model.name)
+    slug = bench_model.model.slug
     got = next(v for v in _verdicts(bench_model)["verdicts"] if v["model"] == slug and v["hypothesis"] == hypothesis)
     expected = EXPECTED["expected"].get(bench_model.name, {}).get(hypothesis)
     if expected is None:

@@ -16,7 +16,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "vlmproprio"
 # Stage of every module (dotted, relative to vlmproprio); a module may import its own stage or earlier ones.
 STAGES: list[tuple[str, ...]] = [
     ("errors", "secrets", "io", "locations", "options", "schemas"),
-    ("primitives", "episodes", "chat"),
+    ("primitives", "episodes", "chat", "models"),
     ("summary", "record"),
     ("conditions",),
     ("prompts",),
@@ -32,6 +32,7 @@ STAGES: list[tuple[str, ...]] = [
     ("evaluation", "frame_table", "sidecars"),
     ("report",),
     ("dataset_export", "inspect"),
+    ("bench",),
     ("cli", "pytest_plugin"),
 ]
 

@@ -124,12 +124,12 @@ def test_static_cache_setting_reaches_the_backend(vlmproprio_home, torch_one_thr
     args = build_parser().parse_args(["run", "--model", "tiny-qwen2-vl", "--static-cache", "--batch-size", "32"])
     assert args.static_cache is True
     assert build_parser().parse_args(["run", "--model", "tiny-qwen2-vl"]).static_cache is False
-    backend = create_backend("tiny-qwen2-vl", "live", BackendSettings(static_cache=True, max_batch_size=32))
+    backend = create_backend("tiny-qwen2-vl", "live", BackendSettings.of(static_cache=True, max_batch_size=32))
     assert (backend.static_cache, backend.compile_decode, backend.max_batch_size) == (True, None, 32)
     assert create_backend("tiny-qwen2-vl", "live").static_cache is False
     args = build_parser().parse_args(["run", "--model", "tiny-qwen2-vl", "--batch-tokens", "4096"])
     assert args.batch_tokens == 4096
-    backend = create_backend("tiny-qwen2-vl", "live", BackendSettings(max_batch_tokens=4096))
+    backend = create_backend("tiny-qwen2-vl", "live", BackendSettings.of(max_batch_tokens=4096))
     assert backend.max_batch_tokens == 4096
     with pytest.raises(BackendError, match="needs the static KV cache"):
         make_backend(compile_decode=True)

@@ -23,10 +23,11 @@ from vlmproprio.backends.reference_state import (
     scene_of_image,
     state_answer,
 )
-from vlmproprio.backends.registry import REGISTRY, create_backend, model_availability
+from vlmproprio.backends.registry import create_backend, model_availability
 from vlmproprio.chat import ImagePart, RequestTag
 from vlmproprio.conditions import get_condition
 from vlmproprio.episodes import load_episodes
+from vlmproprio.models import REGISTRY
 from vlmproprio.pipeline import caption_episodes
 from vlmproprio.prompts.state import format_state_line
 from vlmproprio.scoring import score_caption
@@ -49,7 +50,7 @@ def transcripts(episodes):
 
 def test_registry_labels_it_as_a_rule_set_available_everywhere():
     spec = REGISTRY["reference-state"]
-    assert spec.backend == "reference" and "NOT a VLM" in spec.weights and "NOT a VLM" in spec.description
+    assert spec.kind == "reference" and "NOT a VLM" in spec.weights and "NOT a VLM" in spec.description
     for mode in ("live", "record", "replay"):
         backend = create_backend("reference-state", mode)
         assert isinstance(backend, ReferenceStateBackend) and not backend.calls_model

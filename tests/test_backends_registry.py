@@ -5,19 +5,10 @@ from __future__ import annotations
 import pytest
 
 from vlmproprio.backends.base import BackendError
-from vlmproprio.backends.registry import (
-    REGISTRY,
-    BackendSettings,
-    ModelNameError,
-    cassette_path,
-    create_backend,
-    format_registry,
-    model_availability,
-    model_slug,
-    parse_model_name,
-)
+from vlmproprio.backends.registry import BackendSettings, create_backend, model_availability
 from vlmproprio.cassettes import write_cassette
 from vlmproprio.errors import VlmproprioError
+from vlmproprio.models import REGISTRY, ModelNameError, format_registry, resolve_model
 
 
 def test_registry_has_the_models_the_paper_and_ci_need():
@@ -35,7 +26,7 @@ def test_registry_has_the_models_the_paper_and_ci_need():
         "reference-state": ("reference", "state-aware rules, NOT a VLM"),
     }
     for name, (backend, weights) in expect.items():
-        assert (REGISTRY[name].backend, REGISTRY[name].weights) == (backend, weights)
+        assert (REGISTRY[name].kind, REGISTRY[name].weights) == (backend, weights)
     table = format_registry().splitlines()
     assert table[0].split() == ["name", "backend", "default", "weights"] and len(table) == len(REGISTRY) + 1
 
@@ -53,8 +44,8 @@ def test_registry_has_the_models_the_paper_and_ci_need():
     ],
 )
 def test_slugs_are_single_safe_components(name, slug, tmp_path):
-    assert model_slug(name) == slug
-    path = cassette_path(name, tmp_path)
+    assert resolve_model(name).slug == slug
+    path = resolve_model(name).cassette(tmp_path)
     assert path.parent == tmp_path and path.name == slug + ".jsonl"
 
 
@@ -64,7 +55,7 @@ def test_slugs_are_single_safe_components(name, slug, tmp_path):
 )
 def test_unsafe_names_are_refused(name):
     with pytest.raises(ModelNameError):
-        model_slug(name)
+        resolve_model(name)
 
 
 # Pairs of different models whose readable names sanitise alike (issue 15, defect 2).
@@ -81,19 +72,19 @@ COLLIDING = [
 
 @pytest.mark.parametrize(("a", "b"), COLLIDING)
 def test_models_whose_names_sanitise_alike_get_different_folders(a, b):
-    sa, sb = model_slug(a), model_slug(b)
+    sa, sb = resolve_model(a).slug, resolve_model(b).slug
     assert sa != sb and sa.lower() != sb.lower()
 
 
 def test_model_names_with_line_separators_are_refused():
     for name in ("openai:gpt\u2028-4o", "openai:gpt\u2029x", "hf:a\u200bb"):
         with pytest.raises(ModelNameError, match="unprintable"):
-            model_slug(name)
+            resolve_model(name)
 
 
 def test_unknown_name_lists_the_registry():
     with pytest.raises(ModelNameError) as info:
-        parse_model_name("gpt-5-vision")
+        resolve_model("gpt-5-vision")
     msg = str(info.value)
     assert all(n in msg for n in REGISTRY) and "hf:<folder or HF repo id>" in msg
     assert isinstance(info.value, VlmproprioError)  # the CLI prints it as one line
@@ -112,7 +103,7 @@ def test_replay_needs_a_cassette_and_says_how_to_record(tmp_path):
     with pytest.raises(BackendError, match=r"no cassette for model 'gpt-4v'.*cassette export --model gpt-4v"):
         create_backend("gpt-4v", "replay", settings)
     identity = {"backend": "openai", "model_id": "gpt-4-vision-preview"}
-    write_cassette(cassette_path("gpt-4v", tmp_path), "gpt-4v", identity, [])
+    write_cassette(resolve_model("gpt-4v").cassette(tmp_path), "gpt-4v", identity, [])
     assert model_availability("gpt-4v", "replay", settings)
     backend = create_backend("gpt-4v", "replay", settings)
     assert backend.identity()["model_id"] == "gpt-4-vision-preview" and not backend.calls_model
@@ -125,7 +116,7 @@ def test_live_availability_reasons(monkeypatch, tmp_path):
     assert not avail and "$OPENAI_API_KEY" in avail.reason
     monkeypatch.setenv("OPENAI_API_KEY", "sk-x")
     assert model_availability("gpt-4o", "live")
-    assert model_availability("openai:whatever", "live", BackendSettings(base_url="http://127.0.0.1:8000/v1"))
+    assert model_availability("openai:whatever", "live", BackendSettings.of(base_url="http://127.0.0.1:8000/v1"))
     pytest.importorskip("transformers")
     monkeypatch.setattr("huggingface_hub.constants.HF_HUB_CACHE", str(tmp_path / "empty-hub"))
     avail = model_availability("qwen2-vl", "live")

@@ -71,7 +71,7 @@ def test_allow_download_is_off_by_default_and_says_why_it_failed(monkeypatch, ca
 
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     off = model_availability("qwen2-vl", "live", BackendSettings())
-    on = model_availability("qwen2-vl", "live", BackendSettings(allow_download=True))
+    on = model_availability("qwen2-vl", "live", BackendSettings.of(allow_download=True))
     if off:
         pytest.skip("Qwen2-VL weights are in this machine's Hugging Face cache")
     assert "--allow-download" in off.reason

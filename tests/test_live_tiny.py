@@ -33,7 +33,7 @@ def test_tiny_model_live_matches_its_cassette(tmp_path: Path) -> None:
             out=tmp_path / "live",
             mode="live",
             cache_dir=tmp_path / "cache",
-            backend=BackendSettings(threads=1),
+            backend=BackendSettings.of(threads=1),
             **common,
         )
     )

@@ -87,7 +87,7 @@ from vlmproprio import pytest_plugin
 
 def test_stash(request):
     session = request.config.stash[pytest_plugin.BENCH_KEY]
-    assert session.models == ("reference",)
+    assert [m.name for m in session.models] == ["reference"]
     assert session.episodes == ("door_00", "bin0_00")
     assert not hasattr(request.config, "_vlmproprio_bench")
 """

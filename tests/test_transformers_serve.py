@@ -79,13 +79,13 @@ def server(tiny_llava, tmp_path_factory):
 
 def _raw_answers(cache: Path, model: str) -> dict:
     """Every raw answer of ``model`` in the response cache, by (episode, condition, stage, group)."""
-    from vlmproprio.backends.registry import model_slug
     from vlmproprio.cache import ResponseCache
+    from vlmproprio.models import resolve_model
 
     with ResponseCache(cache) as c:
         return {
             (e.tag["episode_id"], e.tag["condition"], e.tag["stage"], e.tag["group"]): e.text
-            for e in c.entries(model_slug(model))
+            for e in c.entries(resolve_model(model).slug)
         }
 
 

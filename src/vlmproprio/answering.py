@@ -9,16 +9,29 @@ it closes. Nothing below this layer imports it.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 from typing import Literal
 
 from vlmproprio.backends.base import Backend
-from vlmproprio.cache import CacheCorruptError, CacheEntry, CacheError, ResponseCache, key_identity, request_key
+from vlmproprio.backends.registry import create_backend, resolve_mode
+from vlmproprio.backends.settings import BackendSettings
+from vlmproprio.cache import (
+    CacheCorruptError,
+    CacheEntry,
+    CacheError,
+    ResponseCache,
+    default_cache_dir,
+    key_identity,
+    request_key,
+)
 from vlmproprio.cassettes import ReplayMissError, replay_miss_message, scrubbed_entry, write_cassette
 from vlmproprio.chat import Answer, ChatRequest
+from vlmproprio.episodes import register_fixture_file
 from vlmproprio.errors import UsageError, VlmproprioError
+from vlmproprio.models import ModelRef, resolve_model
 from vlmproprio.options import ANSWER_MODES
 from vlmproprio.secrets import scrub
 
@@ -52,6 +65,7 @@ class Answerer:
         self.identity = key_identity(backend.identity())
         self.model = model or self.identity["model_id"]
         self.used: dict[str, CacheEntry] = {}
+        self.cassette: Path | None = None  # the cassette written when a record session closed
         self.stats = {"hits": 0, "misses": 0, "stored": 0, "corrupt": 0}
 
     # -------------------------------------------------------------------------------- public
@@ -146,3 +160,31 @@ class Answerer:
     def _use(self, entry: CacheEntry) -> None:
         if self.mode == "record":
             self.used[entry.key] = entry
+
+
+@contextmanager
+def open_answerer(
+    model: str | ModelRef, mode: str, settings: BackendSettings | None = None, cache_dir: Path | str | None = None
+) -> Iterator[Answerer]:
+    """The answerer for ``model`` in ``mode`` (``auto`` made concrete), as captioning and the judge use it.
+
+    Backend from the registry; the response cache in ``cache_dir`` (none in replay, where answers come only from
+    the committed cassette, so a stale local cache cannot mask a missing answer); in record mode, on a clean exit,
+    the answers used are merged into the model's cassette (``settings.cassette_dir``/<slug>.jsonl), which is
+    registered in the fixture manifest, and :attr:`Answerer.cassette` says where."""
+    settings = settings or BackendSettings()
+    ref = resolve_model(model)
+    mode = resolve_mode(ref, mode, settings)
+    backend = create_backend(ref, mode, settings)
+    cache = None
+    try:
+        cache = None if mode == "replay" else ResponseCache(cache_dir or default_cache_dir())
+        answerer = Answerer(backend, mode=mode, cache=cache, model=ref.slug)
+        yield answerer
+        if mode == "record" and answerer.used:
+            answerer.cassette = answerer.export_cassette(ref.cassette(settings.cassette_dir))
+            register_fixture_file(answerer.cassette)
+    finally:
+        backend.close()
+        if cache is not None:
+            cache.close()

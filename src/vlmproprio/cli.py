@@ -116,19 +116,19 @@ def cmd_make_tiny_model(args: argparse.Namespace) -> int:
 
 
 def cmd_cassette(args: argparse.Namespace) -> int:
-    from vlmproprio.backends.registry import cassette_path, model_slug
     from vlmproprio.cache import ResponseCache
     from vlmproprio.cassettes import export_cassette, import_cassette
     from vlmproprio.episodes import register_fixture_file
+    from vlmproprio.models import resolve_model
 
     cache_dir = cache_root_of(args)  # the response cache is the cache folder's cache.db
-    if args.action == "export":
-        model_slug(args.model)  # an unsafe name is refused before anything is opened
+    # an unsafe name is refused before anything is opened
+    model = resolve_model(args.model) if args.action == "export" else None
     with ResponseCache(cache_dir) as cache:
-        if args.action == "export":
+        if model is not None:
             cassette_dir = args.cassette_dir or (args.out.parent if args.out else fixtures_of(args) / "responses")
-            path = args.out or cassette_path(args.model, cassette_dir)
-            path, n = export_cassette(cache, model_slug(args.model), path, merge=not args.replace)
+            path = args.out or model.cassette(cassette_dir)
+            path, n = export_cassette(cache, model.slug, path, merge=not args.replace)
             manifest = register_fixture_file(path)
             print(f"wrote {n} answers of {args.model} to {path}" + (f" (updated {manifest})" if manifest else ""))
             if not args.no_embed:
@@ -163,14 +163,15 @@ def _embed_exported(model: str, cassette: Path) -> None:
 
 
 def cmd_cassette_embed(args: argparse.Namespace) -> int:
-    from vlmproprio.backends.registry import model_slug
     from vlmproprio.embeddings import encoder_spec
+    from vlmproprio.models import resolve_model
     from vlmproprio.sidecars import benchmark_caption_texts, build_sidecar, run_caption_texts
 
     spec = encoder_spec(args.encoder, batch_size=args.encoder_batch_size)
     fixtures = fixtures_of(args)
     if args.run_dir:
-        texts = set().union(*(run_caption_texts(r, fixtures, model_slug(args.model)) for r in args.run_dir))
+        slug = resolve_model(args.model).slug
+        texts = set().union(*(run_caption_texts(r, fixtures, slug) for r in args.run_dir))
     else:
         texts = benchmark_caption_texts(args.model, fixtures, progress=not args.no_progress)
     build = build_sidecar(
@@ -196,7 +197,8 @@ def _embed_recorded(runs, run_dir: Path, fixtures: Path) -> None:
 
 
 def cmd_models(args: argparse.Namespace) -> int:
-    from vlmproprio.backends.registry import BackendSettings, format_availability, format_registry
+    from vlmproprio.backends.registry import BackendSettings, format_availability
+    from vlmproprio.models import format_registry
 
     if args.plain:
         print(format_registry())
@@ -208,7 +210,7 @@ def cmd_models(args: argparse.Namespace) -> int:
     except UsageError:
         fixtures = None
     cassettes = fixtures / "responses" if fixtures else Path("fixtures") / "responses"
-    settings = BackendSettings(
+    settings = BackendSettings.of(
         cassette_dir=cassettes, base_url=args.base_url, api_key_env=args.api_key_env, allow_download=args.allow_download
     )
     print(f"cassettes: {cassettes}" + ("" if fixtures else " (no fixture folder found: pass --fixtures)"))
@@ -253,7 +255,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             prompt=PromptOptions(example=not args.no_example, version=args.prompt_version),
         ),
         max_new_tokens=args.max_new_tokens,
-        backend=BackendSettings(
+        backend=BackendSettings.of(
             device=args.device,
             dtype=args.dtype,
             attn_implementation=args.attn,
@@ -282,10 +284,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def answer_summary(r) -> str:
     """Where a model run's answers came from: replayed from a cassette, from the response cache, or computed."""
-    from vlmproprio.backends.registry import parse_model_name
-
     hits, misses = r.stats.get("hits", 0), r.stats.get("misses", 0)
-    if parse_model_name(r.name).backend == "reference":
+    if r.model.is_rules:
         return f"{hits} answers from the response cache, {misses} computed by rules (no model)"
     if r.mode == "replay":
         return f"{misses} answers replayed from the cassette, 0 model calls"
@@ -454,21 +454,19 @@ def cmd_export_dataset(args: argparse.Namespace) -> int:
 
 def _score_with_judge(args: argparse.Namespace, score: dict):
     """score_run with a judge model whose requests go through the response cache and cassettes like captioning."""
-    from vlmproprio.backends.registry import BackendSettings, resolve_mode
+    from vlmproprio.answering import open_answerer
+    from vlmproprio.backends.settings import BackendSettings
     from vlmproprio.evaluation import read_run_manifest, resolve_fixtures, score_run
-    from vlmproprio.scoring import judge_session
 
     # through the bounded JSON loader: a damaged run.json is one line naming it, as everywhere else
     fixtures = resolve_fixtures(args.run_dir, read_run_manifest(args.run_dir), args.fixtures)
-    settings = BackendSettings(
+    settings = BackendSettings.of(
         threads=args.judge_threads,
         base_url=args.base_url,
         api_key_env=args.api_key_env,
         cassette_dir=fixtures / "responses",
     )
-    with judge_session(
-        args.judge, resolve_mode(args.judge, args.judge_mode, settings), settings, cache_root_of(args)
-    ) as judge:
+    with open_answerer(args.judge, args.judge_mode, settings, cache_root_of(args)) as judge:
         return score_run(args.run_dir, **score, judge=judge)
 
 

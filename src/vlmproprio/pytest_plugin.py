@@ -25,6 +25,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
 
@@ -40,6 +41,10 @@ from vlmproprio.options import (
     MODES,
     split_list,
 )
+
+if TYPE_CHECKING:  # annotations only: the work is in vlmproprio.bench, imported when a model runs
+    from vlmproprio.bench import ModelResult
+    from vlmproprio.models import ModelRef
 
 DEFAULT_MODELS = ("reference", "reference-state", "tiny-qwen2-vl")
 CELL_FIXTURE = "bench_cell"
@@ -112,25 +117,12 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int | None:
 
 @dataclass(frozen=True)
 class CellId:
-    model: str
+    model: ModelRef
     episode_id: str
     condition: str
 
     def __str__(self) -> str:
         return f"{self.model}-{self.episode_id}-{self.condition}"
-
-
-@dataclass
-class ModelResult:
-    """A model's run, scored: rows keyed by (episode, condition), the sweep, the paired table."""
-
-    name: str
-    run_dir: Path
-    rows: dict[tuple[str, str], dict]
-    sweep: dict[tuple[str, str], list[dict]]
-    paired: list[dict]
-    episodes: tuple[str, ...]
-    conditions: tuple[str, ...]
 
 
 @dataclass
@@ -141,25 +133,24 @@ class BenchSession:
     fixtures: Path
     mode: str
     run_root: Path | None  # None: a temporary folder made on first use
-    models: tuple[str, ...]
+    models: tuple[ModelRef, ...]
     conditions: tuple[str, ...]
     episodes: tuple[str, ...]
-    needed: dict[str, tuple[set[str], set[str]]] = field(default_factory=dict)
-    results: dict[str, ModelResult] = field(default_factory=dict)
-    failures: dict[str, str] = field(default_factory=dict)
+    needed: dict[ModelRef, tuple[set[str], set[str]]] = field(default_factory=dict)
+    results: dict[ModelRef, ModelResult] = field(default_factory=dict)
+    failures: dict[ModelRef, str] = field(default_factory=dict)
 
-    def need(self, model: str, episodes, conditions) -> None:
+    def need(self, model: ModelRef, episodes, conditions) -> None:
         eps, conds = self.needed.setdefault(model, (set(), set()))
         eps.update(episodes)
         conds.update(conditions)
 
-    def availability(self, model: str):
-        from vlmproprio.backends.registry import BackendSettings, model_availability
+    def availability(self, model: ModelRef):
+        from vlmproprio.bench import availability
 
-        settings = BackendSettings(cassette_dir=self.fixtures / "responses")
-        return model_availability(model, self.mode, settings)
+        return availability(model, self.mode, self.fixtures)
 
-    def result(self, model: str, tmp_path_factory: pytest.TempPathFactory) -> ModelResult:
+    def result(self, model: ModelRef, tmp_path_factory: pytest.TempPathFactory) -> ModelResult:
         if model in self.failures:
             pytest.fail(self.failures[model], pytrace=False)
         if self.run_root is None:
@@ -178,56 +169,13 @@ class BenchSession:
                 pytest.fail(self.failures[model], pytrace=False)
         return self.results[model]
 
-    def _run(self, model: str) -> ModelResult:
-        from vlmproprio.backends.registry import BackendSettings, model_slug
-        from vlmproprio.conditions import parse_conditions
-        from vlmproprio.evaluation import score_run
-        from vlmproprio.runner import RunPlan, run
+    def _run(self, model: ModelRef) -> ModelResult:
+        from vlmproprio.bench import run_and_score
 
         eps, conds = self.needed.get(model, (set(self.episodes), set(self.conditions)))
-        order = {c: i for i, c in enumerate(self.conditions)}
         assert self.run_root is not None
-        conditions = tuple(parse_conditions(sorted(conds, key=order.get)))
-        run_dir = _run_folder(self.run_root / model_slug(model), sorted(eps), [c.name for c in conditions])
-        plan = RunPlan(
-            models=(model,),
-            conditions=conditions,
-            fixtures=self.fixtures,
-            out=run_dir,
-            episode_ids=tuple(sorted(eps)),
-            mode=self.mode,
-            backend=BackendSettings(threads=1),  # pinned: bit-identical CPU runs of local models
-            progress=False,
-        )
-        run(plan)
-        tables = score_run(run_dir, fixtures=self.fixtures)
-        sweep: dict[tuple[str, str], list[dict]] = {}
-        for r in tables.sweep:
-            sweep.setdefault((r["episode_id"], r["condition"]), []).append(r)
-        return ModelResult(
-            name=model,
-            run_dir=run_dir,
-            rows={(r["episode_id"], r["condition"]): r for r in tables.rows},
-            sweep=sweep,
-            paired=list(tables.paired),
-            episodes=tuple(sorted(eps)),
-            conditions=tuple(sorted(conds, key=order.get)),
-        )
-
-
-def _run_folder(run_dir: Path, episodes: list[str], conditions: list[str]) -> Path:
-    """``run_dir``, or a sibling named by a digest of the selection when a kept run (--run-dir) there holds
-    other episodes or conditions: a run folder holds one configuration and refuses another (issue 15)."""
-    import hashlib
-    import json
-
-    from vlmproprio.runner import read_run_file
-
-    old = read_run_file(run_dir) if run_dir.is_dir() else None
-    if old is None or (old.get("episodes"), old.get("conditions")) == (episodes, conditions):
-        return run_dir
-    digest = hashlib.sha256(json.dumps([episodes, conditions]).encode()).hexdigest()[:8]
-    return run_dir.with_name(f"{run_dir.name}-{digest}")
+        conditions = [c for c in self.conditions if c in conds]  # the session's order
+        return run_and_score(model, self.fixtures, self.mode, eps, conditions, self.run_root)
 
 
 def _session(config: pytest.Config) -> BenchSession:
@@ -261,12 +209,10 @@ def _session(config: pytest.Config) -> BenchSession:
         raise pytest.UsageError(
             f"--episodes: unknown episode(s) {', '.join(unknown)} in {fixtures} (known: {', '.join(sorted(known))})"
         )
-    models = tuple(split_list(option(config, "model")) or DEFAULT_MODELS)
-    from vlmproprio.backends.registry import model_slug
+    from vlmproprio.models import resolve_model
 
     try:
-        for m in models:
-            model_slug(m)
+        models = tuple(map(resolve_model, split_list(option(config, "model")) or DEFAULT_MODELS))
         conditions = tuple(c.name for c in parse_conditions(option(config, "conditions") or DEFAULT_CONDITIONS))
     except VlmproprioError as exc:
         raise pytest.UsageError(str(exc)) from None
@@ -291,7 +237,7 @@ def pytest_generate_tests(metafunc: pytest.Metafunc) -> None:
         metafunc.parametrize(CELL_FIXTURE, cells, ids=[str(c) for c in cells], indirect=True)
     elif MODEL_FIXTURE in metafunc.fixturenames:
         s = _session(metafunc.config)
-        metafunc.parametrize(MODEL_FIXTURE, list(s.models), ids=list(s.models), indirect=True)
+        metafunc.parametrize(MODEL_FIXTURE, list(s.models), ids=[m.name for m in s.models], indirect=True)
 
 
 @pytest.hookimpl(trylast=True)
@@ -312,7 +258,7 @@ def pytest_collection_modifyitems(session: pytest.Session, config: pytest.Config
             bench.need(callspec.params[MODEL_FIXTURE], bench.episodes, bench.conditions)
 
 
-def _skip_unavailable(s: BenchSession, model: str) -> None:
+def _skip_unavailable(s: BenchSession, model: ModelRef) -> None:
     avail = s.availability(model)
     if not avail:
         message = f"{model} cannot run in {s.mode} mode here: {avail.reason}"

@@ -16,15 +16,19 @@ import datetime as _dt
 import json
 import platform
 import subprocess
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from importlib import metadata
 from pathlib import Path
 from urllib.parse import urlsplit, urlunsplit
 
+from vlmproprio.answering import open_answerer
+from vlmproprio.backends.settings import BackendSettings
+from vlmproprio.cache import default_cache_dir
 from vlmproprio.conditions import Condition
-from vlmproprio.episodes import Episode, load_episodes, register_fixture_file
+from vlmproprio.episodes import Episode, load_episodes
 from vlmproprio.errors import UsageError
 from vlmproprio.io import atomic_write_text
+from vlmproprio.models import ModelRef, resolve_model
 from vlmproprio.pipeline import PipelineSettings, answer_chunk, calls_per_episode, caption_episodes
 from vlmproprio.transcripts import Transcript, write_transcript
 
@@ -35,7 +39,7 @@ PACKAGES = ("vlmproprio", "numpy", "torch", "transformers", "sentence-transforme
 
 @dataclass(frozen=True)
 class RunPlan:
-    models: tuple[str, ...]
+    models: tuple[ModelRef, ...]  # names are resolved when the plan is made
     conditions: tuple[Condition, ...]
     fixtures: Path
     out: Path
@@ -43,27 +47,36 @@ class RunPlan:
     mode: str = "live"
     cache_dir: Path | None = None  # None: vlmproprio.cache.default_cache_dir()
     pipeline: PipelineSettings = field(default_factory=PipelineSettings)
-    backend: object = None  # vlmproprio.backends.registry.BackendSettings; None: defaults
+    backend: BackendSettings | None = None  # None: defaults
     max_new_tokens: int | None = None  # None: each model's registry default (512; tiny models 64)
     progress: bool = True
 
-    def pipeline_for(self, model: str) -> PipelineSettings:
-        from vlmproprio.backends.registry import parse_model_name
+    def __post_init__(self) -> None:
+        # the one place a run's model names are parsed: an unknown or unsafe name fails before any work
+        object.__setattr__(self, "models", tuple(map(resolve_model, self.models)))
 
-        n = self.max_new_tokens or parse_model_name(model).max_new_tokens
+    def pipeline_for(self, model: ModelRef) -> PipelineSettings:
+        n = self.max_new_tokens or model.max_new_tokens
         return replace(self.pipeline, generation=replace(self.pipeline.generation, max_new_tokens=n))
 
 
 @dataclass
 class ModelRun:
-    name: str
-    slug: str
+    model: ModelRef
     mode: str
     pipeline: dict
     identity: dict
     stats: dict
     transcripts: list[Transcript]
     cassette: str | None = None
+
+    @property
+    def name(self) -> str:
+        return self.model.name
+
+    @property
+    def slug(self) -> str:
+        return self.model.slug
 
 
 def package_versions() -> dict[str, str]:
@@ -98,10 +111,10 @@ def _public_url(url: str | None) -> str | None:
     return urlunsplit((parts.scheme, host, parts.path, "", ""))
 
 
-def _backend_settings_record(settings) -> dict:
-    d = {k: v for k, v in asdict(settings).items() if k not in ("extra", "home", "cassette_dir")}
+def _backend_settings_record(settings: BackendSettings) -> dict:
+    d = settings.record()
     d["base_url"] = _public_url(d.get("base_url"))  # and every text written is scrubbed (vlmproprio.io)
-    return {k: (str(v) if isinstance(v, Path) else v) for k, v in d.items()}
+    return d
 
 
 def _model_record(r: ModelRun) -> dict:
@@ -142,44 +155,26 @@ def _write_run_file(
     atomic_write_text(plan.out / RUN_FILE, json.dumps(doc, indent=1) + "\n")
 
 
-def run_model(name: str, plan: RunPlan, episodes: list[Episode], peers: list[Episode], settings) -> ModelRun:
-    from vlmproprio.answering import Answerer
-    from vlmproprio.backends.registry import cassette_path, create_backend, model_slug, resolve_mode
-    from vlmproprio.cache import ResponseCache, default_cache_dir
-
-    slug = model_slug(name)
-    mode = resolve_mode(name, plan.mode, settings)  # auto: replay with a cassette, else live
-    backend = create_backend(name, mode, settings)
-    # replay answers strictly from the committed cassette: a stale local cache must not mask a missing answer
-    cache = None if mode == "replay" else ResponseCache(plan.cache_dir or default_cache_dir())
-    try:
-        cached = Answerer(backend, mode=mode, cache=cache, model=slug)
-        pipeline = plan.pipeline_for(name)
+def run_model(
+    model: ModelRef, plan: RunPlan, episodes: list[Episode], peers: list[Episode], settings: BackendSettings
+) -> ModelRun:
+    pipeline = plan.pipeline_for(model)
+    with open_answerer(model, plan.mode, settings, plan.cache_dir) as answerer:
         transcripts = caption_episodes(
             episodes,
             plan.conditions,
-            cached.answer,
-            slug,
+            answerer.answer,
+            model.slug,
             pipeline,
             peers=peers,
-            chunk=answer_chunk(backend.max_batch_size),
+            chunk=answer_chunk(answerer.backend.max_batch_size),
             progress=plan.progress,
         )
         for t in transcripts:
             write_transcript(plan.out, t)
-        cassette = None
-        if mode == "record":
-            path = cassette_path(name, settings.cassette_dir)
-            cached.export_cassette(path)
-            cassette = str(path)
-            register_fixture_file(path)
-        return ModelRun(
-            name, slug, mode, pipeline.to_dict(), dict(cached.identity), dict(cached.stats), transcripts, cassette
-        )
-    finally:
-        backend.close()
-        if cache is not None:
-            cache.close()
+    cassette = str(answerer.cassette) if answerer.cassette else None
+    stats = dict(answerer.stats)
+    return ModelRun(model, answerer.mode, pipeline.to_dict(), dict(answerer.identity), stats, transcripts, cassette)
 
 
 # ---------------------------------------------------------------------------------------------- run folders
@@ -231,8 +226,6 @@ def check_run_folder(plan: RunPlan, episodes: list[Episode]) -> list[dict]:
     A run folder records its configuration (run.json). Running into it again with the same fixtures, episodes,
     conditions and per-model settings resumes or redoes it; another model with those settings is added to it.
     Anything else is refused in one line: the folder would otherwise mix transcripts of two configurations."""
-    from vlmproprio.backends.registry import model_slug
-
     out = Path(plan.out)
     old = read_run_file(out)
     where = out / RUN_FILE
@@ -250,18 +243,18 @@ def check_run_folder(plan: RunPlan, episodes: list[Episode]) -> list[dict]:
             raise UsageError(f"{where} is a run of other {field_name} ({diff}); {fix}")
     earlier = [m for m in old.get("models", []) if isinstance(m, dict)]
     by_slug = {m.get("slug"): m for m in earlier}
-    for name in plan.models:
-        m = by_slug.get(model_slug(name))
+    for model in plan.models:
+        m = by_slug.get(model.slug)
         if m is None:
             continue
-        if m.get("name") != name:
+        if m.get("name") != model.name:
             raise UsageError(
-                f"{where}: model {name!r} would share the folder transcripts/{model_slug(name)} with model "
+                f"{where}: model {model.name!r} would share the folder transcripts/{model.slug} with model "
                 f"{m.get('name')!r} already there; {fix}"
             )
-        if isinstance(m.get("pipeline"), dict) and m["pipeline"] != plan.pipeline_for(name).to_dict():
-            diff = "; ".join(_differences(m["pipeline"], plan.pipeline_for(name).to_dict()))
-            raise UsageError(f"{where}: model {name!r} ran there with other settings ({diff}); {fix}")
+        if isinstance(m.get("pipeline"), dict) and m["pipeline"] != plan.pipeline_for(model).to_dict():
+            diff = "; ".join(_differences(m["pipeline"], plan.pipeline_for(model).to_dict()))
+            raise UsageError(f"{where}: model {model.name!r} ran there with other settings ({diff}); {fix}")
     return earlier
 
 
@@ -280,18 +273,14 @@ def recorded_transcripts(run_dir: Path, run_file: dict) -> list[Path] | None:
 
 def run(plan: RunPlan) -> list[ModelRun]:
     """Caption every (episode, condition) with every model; write transcripts and run.json."""
-    from vlmproprio.backends.registry import BackendSettings, model_slug
-
     slugs: dict[str, str] = {}
-    for name in plan.models:
-        slug = model_slug(name)  # refuse unsafe or unknown names before any work
-        if slugs.setdefault(slug, name) != name:
-            raise UsageError(f"models {slugs[slug]!r} and {name!r} would share the folder transcripts/{slug}")
-    from vlmproprio.cache import default_cache_dir
-
+    for model in plan.models:
+        if slugs.setdefault(model.slug, model.name) != model.name:
+            raise UsageError(
+                f"models {slugs[model.slug]!r} and {model.name!r} would share the folder transcripts/{model.slug}"
+            )
     refuse_nesting(Path(plan.fixtures), {"--out": plan.out, "--cache-dir": plan.cache_dir or default_cache_dir()})
-    settings = plan.backend or BackendSettings()
-    settings = BackendSettings(**{**asdict(settings), "cassette_dir": Path(plan.fixtures) / "responses"})
+    settings = replace(plan.backend or BackendSettings(), cassette_dir=Path(plan.fixtures) / "responses")
     peers = load_episodes(plan.fixtures)  # verifies every episode; both_shuffled may borrow from any of them
     if plan.episode_ids is None:
         episodes = peers
@@ -310,8 +299,8 @@ def run(plan: RunPlan) -> list[ModelRun]:
         ) from exc
     runs: list[ModelRun] = []
     _write_run_file(plan, episodes, runs, "running", settings, earlier)
-    for name in plan.models:
-        runs.append(run_model(name, plan, episodes, peers, settings))
+    for model in plan.models:
+        runs.append(run_model(model, plan, episodes, peers, settings))
         _write_run_file(plan, episodes, runs, "running", settings, earlier)
     _write_run_file(plan, episodes, runs, "complete", settings, earlier)
     return runs

@@ -46,12 +46,10 @@ from __future__ import annotations
 import hashlib
 import json
 import re
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from functools import cache, lru_cache
 from importlib import resources
-from pathlib import Path
 
 import numpy as np
 
@@ -1073,9 +1071,9 @@ def parse_judge_answer(raw: str) -> JudgeVerdict:
 def judge_captions(judge, captions: Sequence[tuple[str, Episode, str]]) -> list[JudgeVerdict]:
     """Grade (text, episode, condition) triples, in order.
 
-    ``judge`` is a ``cache.Answerer`` (see :func:`judge_session`): its requests go through the same
+    ``judge`` is an ``answering.Answerer`` (see :func:`answering.open_answerer`): its requests go through the same
     content-addressed response cache and cassettes as captioning, so a judge's verdicts replay
-    bit-identically. A plain Backend is wrapped in a Answerer without a store (same keys, batches)."""
+    bit-identically. A plain Backend is wrapped in an Answerer without a store (same keys, batches)."""
     from vlmproprio.answering import Answerer
     from vlmproprio.backends.base import BackendError
 
@@ -1085,31 +1083,6 @@ def judge_captions(judge, captions: Sequence[tuple[str, Episode, str]]) -> list[
     if len(answers) != len(requests):
         raise BackendError(f"judge answered {len(answers)} of {len(requests)} requests")
     return [parse_judge_answer(a.text) for a in answers]
-
-
-@contextmanager
-def judge_session(name: str, mode: str, settings, cache_dir: Path | str | None = None) -> Iterator:
-    """A judge model as captioning runs one: registry backend, response cache (none in replay, where answers
-    come only from the cassette), and in record mode the answers used written to the model's cassette
-    (``settings.cassette_dir``/<slug>.jsonl, merged with what it holds) and registered in the fixture manifest."""
-    from vlmproprio.answering import Answerer
-    from vlmproprio.backends.registry import cassette_path, create_backend, model_slug
-    from vlmproprio.cache import ResponseCache, default_cache_dir
-    from vlmproprio.episodes import register_fixture_file
-
-    backend = create_backend(name, mode, settings)
-    cache = None if mode == "replay" else ResponseCache(cache_dir or default_cache_dir())
-    try:
-        cached = Answerer(backend, mode=mode, cache=cache, model=model_slug(name))
-        yield cached
-        if mode == "record" and cached.used:
-            path = cassette_path(name, settings.cassette_dir)
-            cached.export_cassette(path)
-            register_fixture_file(path)
-    finally:
-        backend.close()
-        if cache is not None:
-            cache.close()
 
 
 def _kappa(pairs: list[tuple[bool, bool]]) -> float | None:

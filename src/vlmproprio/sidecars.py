@@ -34,6 +34,7 @@ from vlmproprio.embeddings import (
 from vlmproprio.episodes import load_episodes, register_fixture_file, sha256_file
 from vlmproprio.errors import VlmproprioError
 from vlmproprio.evaluation import frame_texts
+from vlmproprio.models import ModelRef, resolve_model
 from vlmproprio.transcripts import read_transcripts
 
 log = logging.getLogger(__name__)
@@ -63,25 +64,27 @@ def run_caption_texts(run_dir: str | Path, fixtures: str | Path, slug: str) -> s
     return texts
 
 
-def benchmark_caption_texts(model: str, fixtures: str | Path, *, progress: bool = False) -> set[str]:
+def benchmark_caption_texts(model: str | ModelRef, fixtures: str | Path, *, progress: bool = False) -> set[str]:
     """The frame captions of a replay of ``model`` over every episode and condition of ``fixtures``."""
-    from vlmproprio.backends.registry import BackendSettings, model_slug
+    from vlmproprio.backends.settings import BackendSettings
     from vlmproprio.conditions import parse_conditions
     from vlmproprio.runner import RunPlan, run
+
+    ref = resolve_model(model)
 
     with tempfile.TemporaryDirectory(prefix="vlmproprio-embed-") as tmp:
         out = Path(tmp) / "run"
         plan = RunPlan(
-            models=(model,),
+            models=(ref,),
             conditions=tuple(parse_conditions("all")),
             fixtures=Path(fixtures),
             out=out,
             mode="replay",
-            backend=BackendSettings(threads=1),  # as the benchmark runs it
+            backend=BackendSettings.of(threads=1),  # as the benchmark runs it
             progress=progress,
         )
         run(plan)
-        return run_caption_texts(out, fixtures, model_slug(model))
+        return run_caption_texts(out, fixtures, ref.slug)
 
 
 def _existing_sections(path: Path, merge: bool) -> dict:
@@ -97,7 +100,7 @@ def _existing_sections(path: Path, merge: bool) -> dict:
 
 
 def build_sidecar(
-    model: str,
+    model: str | ModelRef,
     fixtures: str | Path,
     spec: EncoderSpec,
     texts: Iterable[str],
@@ -109,9 +112,8 @@ def build_sidecar(
 
     ``merge=False`` replaces this encoder's section (a rebuild: vectors of captions the cassette no longer
     produces go); ``merge=True`` adds to it (after recording part of the benchmark)."""
-    from vlmproprio.backends.registry import cassette_path, model_slug
-
-    slug = model_slug(model)
+    ref = resolve_model(model)
+    slug = ref.slug
     responses = Path(fixtures) / "responses"
     path = sidecar_path(responses, slug)
     cache_dir = Path(embedding_cache) if embedding_cache is not None else default_embedding_dir()
@@ -123,8 +125,8 @@ def build_sidecar(
     if merge and section.key in sections:
         section = merge_sections(sections[section.key], section)
     sections[section.key] = section
-    cassette = cassette_path(model, responses)
-    source = {"model": model, "cassette_sha256": sha256_file(cassette) if cassette.is_file() else None}
+    cassette = ref.cassette(responses)
+    source = {"model": ref.name, "cassette_sha256": sha256_file(cassette) if cassette.is_file() else None}
     write_sidecar(path, slug, sections.values(), source)
     manifest = register_fixture_file(path)
     return SidecarBuild(path, len(section.digests), embedder.stats.computed, manifest)

@@ -31,8 +31,8 @@ from reliability_support import (
     tree_snapshot,
 )
 
-from vlmproprio.backends.registry import model_slug
 from vlmproprio.episodes import write_manifest
+from vlmproprio.models import resolve_model
 from vlmproprio.testing.openai_server import FakeOpenAIServer
 
 
@@ -123,7 +123,7 @@ def test_an_odd_but_valid_model_name_writes_only_into_run_and_cache(sandbox):
     assert proc.returncode == 0, proc.stderr
     changed = changed_paths(before, tree_snapshot(root))
     assert changed and all(p.startswith(("work/run/", "work/cache/")) for p in changed), sorted(changed)
-    slug = model_slug("openai:org/model:v1")  # lossy readable part: a digest suffix keeps it unique
+    slug = resolve_model("openai:org/model:v1").slug  # lossy readable part: a digest suffix keeps it unique
     assert slug.startswith("openai_org_model_v1-")
     assert (root / "work" / "run" / "transcripts" / slug / "door_00__none.json").is_file()
 

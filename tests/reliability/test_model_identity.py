@@ -13,7 +13,7 @@ import json
 import pytest
 from reliability_support import assert_one_line_error, caption_responder, cli, cli_env, fixture_subset
 
-from vlmproprio.backends.registry import model_slug
+from vlmproprio.models import resolve_model
 
 pytest.importorskip("openai", reason="the openai backend needs the openai SDK")
 
@@ -33,15 +33,15 @@ PAIRS = [
 
 @pytest.mark.parametrize(("a", "b"), PAIRS)
 def test_names_that_sanitise_alike_get_different_folders(a, b, figures):
-    sa, sb = model_slug(a), model_slug(b)
+    sa, sb = resolve_model(a).slug, resolve_model(b).slug
     assert sa.lower() != sb.lower()  # different even on a case-insensitive disk
     figures("model name collisions", pairs=1, disambiguated=1, refused=0, overwritten=0)
 
 
 def test_registry_names_keep_their_folders():
     """Shipped cassettes and baselines are named by registry name: those names must not change."""
-    assert model_slug("reference") == "reference" and model_slug("tiny-qwen2-vl") == "tiny-qwen2-vl"
-    assert model_slug("openai:gpt-4o") == "openai_gpt-4o"
+    assert resolve_model("reference").slug == "reference" and resolve_model("tiny-qwen2-vl").slug == "tiny-qwen2-vl"
+    assert resolve_model("openai:gpt-4o").slug == "openai_gpt-4o"
 
 
 def test_two_colliding_models_recorded_into_one_run_and_fixtures_keep_both(tmp_path, figures):
@@ -70,16 +70,16 @@ def test_two_colliding_models_recorded_into_one_run_and_fixtures_keep_both(tmp_p
                 env=env,
             )
             assert proc.returncode == 0, proc.stderr
-    cassettes = {n: fixtures / "responses" / f"{model_slug(n)}.jsonl" for n in (a, b)}
+    cassettes = {n: fixtures / "responses" / f"{resolve_model(n).slug}.jsonl" for n in (a, b)}
     assert all(p.is_file() for p in cassettes.values()) and len(set(cassettes.values())) == 2
     for name, path in cassettes.items():  # each cassette holds its own model's answers
         lines = path.read_text().splitlines()
-        assert json.loads(lines[0])["model"] == model_slug(name)
+        assert json.loads(lines[0])["model"] == resolve_model(name).slug
         assert all(json.loads(line)["text"].startswith(name.removeprefix("openai:")) for line in lines[1:])
     doc = json.loads((run / "run.json").read_text())
     assert [m["name"] for m in doc["models"]] == [a, b]  # the second run added its model, kept the first
     for name in (a, b):
-        t = json.loads((run / "transcripts" / model_slug(name) / "door_00__none.json").read_text())
+        t = json.loads((run / "transcripts" / resolve_model(name).slug / "door_00__none.json").read_text())
         assert t["final"].startswith(name.removeprefix("openai:"))
 
     # exporting one model's answers over the other's cassette: refused, no destructive advice, file unchanged
@@ -91,7 +91,7 @@ def test_two_colliding_models_recorded_into_one_run_and_fixtures_keep_both(tmp_p
         ],
         env=env,
     )
-    line = assert_one_line_error(proc, model_slug(a), model_slug(b))
+    line = assert_one_line_error(proc, resolve_model(a).slug, resolve_model(b).slug)
     assert "--replace" not in line and cassettes[a].read_bytes() == before
     figures("model name collisions", pairs=1, disambiguated=1, refused=0, overwritten=0)
     figures("destructive advice", errors=1, advising_replace=0, cassettes_overwritten=0)

@@ -1,0 +1,194 @@
+"""Model names, resolved once into a typed reference.
+
+A model is named three ways:
+
+* a short registry name (``REGISTRY`` below, e.g. ``qwen2-vl``, ``gpt-4v``, ``tiny-qwen2-vl``, ``reference``);
+* ``hf:<local folder or Hugging Face repo id>``: any transformers VLM, offline;
+* ``openai:<model name>``: any model behind an OpenAI-compatible server (``--base-url`` for vLLM, SGLang).
+
+:func:`resolve_model` is the one place a name is parsed: it checks the name and returns a
+:class:`ModelRef` (name, folder-safe slug, backend kind, weights, default answer length) that everything
+downstream passes around instead of the string. Which backend answers for a reference, and whether it can
+run here, is vlmproprio.backends.registry.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from vlmproprio.errors import UsageError
+
+HF_PREFIX = "hf:"
+OPENAI_PREFIX = "openai:"
+TINY_PREFIX = "tiny:"
+STATE_RULES = "state-aware rules, NOT a VLM"  # the "weights" of `reference-state`, as `vlmproprio models` shows them
+DEFAULT_CASSETTE_DIR = Path("fixtures") / "responses"
+MAX_NAME_LEN = 200
+_SLUG_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}$")
+_DIGEST_TAIL = re.compile(r"-[0-9a-f]{8}$")
+
+
+class ModelNameError(UsageError):
+    """A model name that is unknown or unsafe."""
+
+
+@dataclass(frozen=True)
+class ModelRef:
+    """A model, resolved: what every stage after the front doors gets instead of the name."""
+
+    name: str  # as the user wrote it (run.json, messages)
+    slug: str  # one safe path component: transcripts/<slug>/, responses/<slug>.jsonl, baselines
+    kind: str  # "hf" | "openai" | "reference"
+    weights: str  # HF repo id or folder | OpenAI model name | "tiny:<family>" | "" or STATE_RULES (reference)
+    description: str
+    # default answer length; tiny random models write gibberish to the limit, so theirs is short
+    max_new_tokens: int = 512
+
+    @property
+    def is_rules(self) -> bool:
+        """The rule-based captioners: no model, the same answers in every mode, no cassette needed."""
+        return self.kind == "reference"
+
+    @property
+    def is_tiny(self) -> bool:
+        return self.weights.startswith(TINY_PREFIX)
+
+    def cassette(self, cassette_dir: Path | str = DEFAULT_CASSETTE_DIR) -> Path:
+        """Where this model's cassette lives in ``cassette_dir``."""
+        base = Path(cassette_dir)
+        path = base / f"{self.slug}.jsonl"
+        if path.resolve().parent != base.resolve():  # belt and braces: a slug is one component
+            raise ModelNameError(f"model name {self.name!r} would leave {base}")
+        return path
+
+    def __str__(self) -> str:
+        return self.name
+
+
+def _registered(name: str, kind: str, weights: str, description: str, max_new_tokens: int = 512) -> ModelRef:
+    return ModelRef(name, name, kind, weights, description, max_new_tokens)
+
+
+REGISTRY: dict[str, ModelRef] = {
+    s.name: s
+    for s in (
+        _registered("qwen2-vl", "hf", "Qwen/Qwen2-VL-2B-Instruct", "Qwen2-VL 2B Instruct, open weights"),
+        _registered("qwen2-vl-7b", "hf", "Qwen/Qwen2-VL-7B-Instruct", "Qwen2-VL 7B Instruct, open weights"),
+        _registered("qwen2.5-vl", "hf", "Qwen/Qwen2.5-VL-3B-Instruct", "Qwen2.5-VL 3B Instruct, open weights"),
+        _registered("qwen2.5-vl-7b", "hf", "Qwen/Qwen2.5-VL-7B-Instruct", "Qwen2.5-VL 7B Instruct, open weights"),
+        _registered("llava", "hf", "llava-hf/llava-1.5-7b-hf", "LLaVA-1.5 7B (transformers port), open weights"),
+        _registered(
+            "llava-onevision",
+            "hf",
+            "llava-hf/llava-onevision-qwen2-0.5b-ov-hf",
+            "LLaVA-OneVision 0.5B (transformers port), open weights",
+        ),
+        _registered(
+            "gpt-4v",
+            "openai",
+            "gpt-4-vision-preview",
+            "GPT-4V, the paper's model, through the OpenAI API (it may no longer be served: replay its cassette)",
+        ),
+        _registered("gpt-4o", "openai", "gpt-4o", "GPT-4o through the OpenAI API"),
+        _registered(
+            "tiny-qwen2-vl", "hf", TINY_PREFIX + "qwen2-vl", "tiny random Qwen2-VL built locally; tests only", 64
+        ),
+        _registered(
+            "tiny-qwen2.5-vl", "hf", TINY_PREFIX + "qwen2.5-vl", "tiny random Qwen2.5-VL built locally; tests only", 64
+        ),
+        _registered("tiny-llava", "hf", TINY_PREFIX + "llava", "tiny random LLaVA built locally; tests only", 64),
+        _registered(
+            "reference",
+            "reference",
+            "",
+            "rule-based motion-primitive captions from the state numbers; NOT a VLM (a baseline)",
+        ),
+        _registered(
+            "reference-state",
+            "reference",
+            STATE_RULES,
+            "rule-based, task-aware captions from the state numbers; NOT a VLM (a positive control)",
+        ),
+    )
+}
+
+
+def format_registry() -> str:
+    """The registry as an aligned text table (name, backend, default weights)."""
+    rows = [("name", "backend", "default weights")] + [(s.name, s.kind, s.weights or "-") for s in REGISTRY.values()]
+    w0, w1 = (max(len(r[i]) for r in rows) for i in range(2))
+    return "\n".join(f"{a:<{w0}}  {b:<{w1}}  {c}" for a, b, c in rows)
+
+
+def _check_name(name: object) -> str:
+    if not isinstance(name, str) or not name.strip():
+        raise ModelNameError("empty model name")
+    if len(name) > MAX_NAME_LEN:
+        raise ModelNameError(f"model name longer than {MAX_NAME_LEN} characters")
+    if any(ord(c) < 32 or ord(c) == 127 for c in name):
+        raise ModelNameError(f"model name {name!r} contains control characters (NUL, newline, ...)")
+    if not name.isprintable():  # U+2028 / U+2029 split printed lines; format characters hide text
+        raise ModelNameError(f"model name {name!r} contains a line separator or other unprintable character")
+    if ".." in name or "\\" in name:
+        raise ModelNameError(f"model name {name!r} contains '..' or a backslash; refused (it could leave a folder)")
+    return name
+
+
+def _sanitise(text: str) -> str:
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("._-")
+
+
+def _slug(name: str, kind: str, weights: str) -> str:
+    """One safe path component for an ``hf:``/``openai:`` name.
+
+    The readable part can lose information (``openai:org/m`` and ``openai:org_m``; ``hf:…/run1/checkpoint-500``
+    and ``hf:…/run2/checkpoint-500``; upper case on a case-insensitive disk): then the slug ends in ``-`` and 8
+    hex digits of the sha256 of the full name, so two names never share a transcripts folder or a cassette. A
+    name kept whole gets no suffix (``openai:gpt-4o``), so existing folders, cassettes and baselines keep their
+    names."""
+    if kind == "hf":
+        w = weights.rstrip("/")
+        # a folder is named by its last part (its absolute path differs between machines), a repo id in full
+        looks_like_path = w.startswith(("/", ".", "~")) or w.count("/") > 1
+        readable = w.rsplit("/", 1)[-1] if looks_like_path else w
+        slug, lossless = "hf_" + _sanitise(readable), not looks_like_path
+    else:
+        w = readable = weights
+        slug, lossless = "openai_" + _sanitise(readable), True
+    lossless = lossless and _sanitise(readable) == readable and readable == readable.lower()
+    if not lossless or _DIGEST_TAIL.search(slug):
+        full = f"{kind}:{w}"
+        slug = f"{slug[:110]}-{hashlib.sha256(full.encode('utf-8')).hexdigest()[:8]}"
+    if not _SLUG_RE.match(slug) or ".." in slug or slug.split("-")[0].rstrip("_") in ("hf", "openai"):
+        raise ModelNameError(f"model name {name!r} gives no usable file name ({slug!r})")
+    return slug
+
+
+@functools.lru_cache(maxsize=256)
+def _resolve(name: str) -> ModelRef:
+    _check_name(name)
+    if name in REGISTRY:
+        return REGISTRY[name]
+    for prefix, kind in ((HF_PREFIX, "hf"), (OPENAI_PREFIX, "openai")):
+        if name.startswith(prefix):
+            rest = name[len(prefix) :].strip()
+            if not rest:
+                raise ModelNameError(f"{name!r}: nothing after {prefix!r}")
+            label = "transformers" if kind == "hf" else "OpenAI API"
+            return ModelRef(name, _slug(name, kind, rest), kind, rest, f"{rest} ({label})")
+    known = ", ".join(REGISTRY)
+    raise ModelNameError(f"unknown model {name!r}. Known: {known}; or hf:<folder or HF repo id>, openai:<model name>")
+
+
+def resolve_model(model: str | ModelRef) -> ModelRef:
+    """The reference for any accepted model name (a reference is returned as it is); ModelNameError for unknown
+    or unsafe names."""
+    if isinstance(model, ModelRef):
+        return model
+    if not isinstance(model, str):
+        raise ModelNameError(f"a model name must be text, got {type(model).__name__}")
+    return _resolve(model)
