@@ -49,12 +49,9 @@ exception) are never stored.
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
 import logging
-import sqlite3
-import time
 import zlib
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
@@ -62,7 +59,8 @@ from pathlib import Path
 
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart, RequestTag
 from vlmproprio.errors import VlmproprioError
-from vlmproprio.io import write_error, writing
+from vlmproprio.io import writing
+from vlmproprio.stores import JSON_VALUES, open_store
 
 log = logging.getLogger(__name__)
 
@@ -220,26 +218,6 @@ def default_cache_dir() -> Path:
     return cache_root()
 
 
-@functools.cache
-def _json_only_disk() -> type:
-    """diskcache's JSONDisk, minus its pickle fallbacks: a cache file is data and must never run code."""
-    import diskcache
-    from diskcache.core import MODE_BINARY, MODE_RAW
-
-    class JSONOnlyDisk(diskcache.JSONDisk):
-        def get(self, key, raw):
-            if not raw:  # JSONDisk stores keys as raw bytes; anything else was not written by us
-                raise CacheCorruptError("cache key is not raw JSON bytes (refusing to unpickle)")
-            return super().get(key, raw)
-
-        def fetch(self, mode, filename, value, read):
-            if mode not in (MODE_RAW, MODE_BINARY):
-                raise CacheCorruptError(f"cache value has storage mode {mode} (refusing to unpickle)")
-            return super().fetch(mode, filename, value, read)
-
-    return JSONOnlyDisk
-
-
 class ResponseCache:
     """Answers by key in a diskcache directory; safe for many processes at once.
 
@@ -248,33 +226,16 @@ class ResponseCache:
     """
 
     def __init__(self, directory: Path | str, *, timeout_s: float = 120.0) -> None:
-        import diskcache
-
         self.directory = Path(directory)
-        try:
-            self.directory.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:  # a file in the way, a read-only or full disk
-            raise write_error(self.directory, exc, "create cache directory") from exc
-        self._cache = None
-        # Opening runs schema setup (PRAGMAs, CREATE TABLE) that can collide with another process doing the same.
-        deadline = time.monotonic() + timeout_s
-        while True:
-            try:
-                self._cache = diskcache.Cache(
-                    str(self.directory),
-                    timeout=timeout_s,
-                    disk=_json_only_disk(),
-                    eviction_policy="none",
-                    disk_compress_level=6,
-                )
-                break
-            except sqlite3.OperationalError as exc:
-                if "locked" not in str(exc) or time.monotonic() > deadline:
-                    raise CacheError(f"cannot open cache {self.directory}: {exc}") from exc
-                time.sleep(0.05)
-            except OSError as exc:  # a read-only or full cache folder
-                with writing(self.directory, "open cache"):
-                    raise exc from None
+        self._cache = open_store(
+            self.directory,
+            JSON_VALUES,
+            error=CacheError,
+            corrupt=CacheCorruptError,
+            what="cache",
+            timeout_s=timeout_s,
+            disk_compress_level=6,
+        )
 
     # -------------------------------------------------------------------------------- reading
     def get(self, key: str) -> CacheEntry | None:

@@ -30,7 +30,6 @@ import importlib.util
 import io
 import itertools
 import json
-import sqlite3
 import time
 import zipfile
 import zlib
@@ -234,40 +233,6 @@ class SentenceEncoder:
 # ---------------------------------------------------------------------------------------------- store
 
 
-def _bytes_only_disk():
-    import diskcache
-
-    class BytesOnlyDisk(diskcache.Disk):
-        """Keys are str, values are bytes; a row in any other form (e.g. pickled) is refused, never loaded."""
-
-        def put(self, key):
-            if type(key) is not str:
-                raise EmbeddingError(f"embedding cache keys are str, got {type(key).__name__}")
-            return super().put(key)
-
-        def get(self, key, raw):
-            if not raw:
-                raise EmbeddingError(f"{self._directory}: embedding cache holds a non-raw key; delete the folder")
-            return super().get(key, raw)
-
-        def store(self, value, read, key=diskcache.core.UNKNOWN):
-            if type(value) is not bytes:
-                raise EmbeddingError(f"embedding cache values are bytes, got {type(value).__name__}")
-            return super().store(value, read, key)
-
-        def fetch(self, mode, filename, value, read):
-            if mode not in (diskcache.core.MODE_RAW, diskcache.core.MODE_BINARY) or read:
-                raise EmbeddingError(
-                    f"{self._directory}: embedding cache row of mode {mode} refused; delete the folder"
-                )
-            data = super().fetch(mode, filename, value, read)
-            if type(data) is not bytes:
-                raise EmbeddingError(f"{self._directory}: embedding cache row is not bytes; delete the folder")
-            return data
-
-    return BytesOnlyDisk
-
-
 def text_key(encoder_key: str, text: str) -> str:
     return hashlib.sha256(json.dumps([encoder_key, text], ensure_ascii=False).encode("utf-8")).hexdigest()
 
@@ -283,15 +248,12 @@ class EmbeddingStore:
     """(encoder key, text) -> float32 vector, on disk, shared safely between processes (diskcache/SQLite)."""
 
     def __init__(self, directory: str | Path):
-        import diskcache
+        from vlmproprio.stores import BYTES_VALUES, open_store
 
         self.directory = Path(directory)
-        try:
-            self._cache = diskcache.Cache(
-                str(self.directory), disk=_bytes_only_disk(), eviction_policy="none", size_limit=2**40
-            )
-        except (OSError, sqlite3.Error) as exc:
-            raise EmbeddingError(f"{self.directory}: cannot open embedding cache ({exc})") from exc
+        self._cache = open_store(
+            self.directory, BYTES_VALUES, error=EmbeddingError, what="embedding cache", size_limit=2**40
+        )
 
     def close(self) -> None:
         self._cache.close()

@@ -712,13 +712,11 @@ class ChanceTable:
 
     def __enter__(self) -> ChanceTable:
         if self._dir is not None:
-            import diskcache
-
-            from vlmproprio.cache import _json_only_disk
+            from vlmproprio.stores import JSON_VALUES, open_store
 
             try:
                 # JSON values only, never diskcache's pickling default: a cache file is data, not code
-                self._disk = diskcache.Cache(str(self._dir), disk=_json_only_disk())
+                self._disk = open_store(self._dir, JSON_VALUES, error=ScoreRunError, what="chance-baseline cache")
             except Exception as exc:  # any failure to open it (a file in the way, a locked or broken database)
                 raise ScoreRunError(f"{self._dir}: cannot open the chance-baseline cache ({exc})") from exc
         return self
