@@ -87,20 +87,38 @@ def _join(phrases: Sequence[str]) -> str:
     return ", ".join(phrases[:-1]) + " and " + phrases[-1]
 
 
-def motion_phrases(m: Motion) -> list[str]:
-    """Verb phrases in the third person: ['moves forward and down', 'closes the gripper']."""
+@dataclass(frozen=True)
+class _Voice:
+    """How a motion is put into words: the reference captions describe (third person), instructions command."""
+
+    move: str
+    joint: str  # with {} for the joint number
+    rotate: str
+    grip: dict[str, str]  # primitives.gripper_word -> verb
+
+
+_DESCRIBE = _Voice(
+    "moves ", "turns its joints, mostly joint {}", "rotates the gripper", {"closes": "closes", "opens": "opens"}
+)
+_COMMAND = _Voice("move ", "turn joint {}", "rotate the gripper", {"closes": "close", "opens": "open"})
+
+
+def _phrases(m: Motion, voice: _Voice) -> list[str]:
     phrases = []
     if m.direction:
-        phrases.append("moves " + " and ".join(m.direction))
+        phrases.append(voice.move + " and ".join(m.direction))
     if m.joint is not None:
-        phrases.append(f"turns its joints, mostly joint {m.joint}")
+        phrases.append(voice.joint.format(m.joint))
     if m.rotates:
-        phrases.append("rotates the gripper")
+        phrases.append(voice.rotate)
     if m.grip:
-        phrases.append(f"{m.grip} the gripper")
-    if not phrases:
-        phrases.append("holds still" if m.known_position else "keeps the gripper as it is")
+        phrases.append(f"{voice.grip[m.grip]} the gripper")
     return phrases
+
+
+def motion_phrases(m: Motion) -> list[str]:
+    """Verb phrases in the third person: ['moves forward and down', 'closes the gripper']."""
+    return _phrases(m, _DESCRIBE) or ["holds still" if m.known_position else "keeps the gripper as it is"]
 
 
 def gripper_state(s: ParsedState) -> str | None:
@@ -159,18 +177,7 @@ def group_caption(seq: Sequence[ParsedState]) -> str:
 
 
 def _imperative(m: Motion) -> str | None:
-    if m.still:
-        return None
-    phrases = []
-    if m.direction:
-        phrases.append("move " + " and ".join(m.direction))
-    if m.joint is not None:
-        phrases.append(f"turn joint {m.joint}")
-    if m.rotates:
-        phrases.append("rotate the gripper")
-    if m.grip:
-        phrases.append(("close" if m.grip == "closes" else "open") + " the gripper")
-    return " and ".join(phrases)
+    return None if m.still else " and ".join(_phrases(m, _COMMAND))
 
 
 def instruction(seq: Sequence[ParsedState]) -> str:
