@@ -533,7 +533,7 @@ def _add_encoder(p, folder_help: str, batch_help: str) -> None:
     p.add_argument("--encoder-batch-size", type=int, default=8, help=batch_help)
 
 
-# Sub-command texts: the line `vlmproprio --help` lists, then the description of `vlmproprio COMMAND --help`.
+# Sub-command texts: the line the top-level --help lists, then the description of the command's own --help.
 _TEXTS: dict[str, tuple[str, str | None]] = {
     "verify": (
         "check fixtures against their manifest and summarise them",
