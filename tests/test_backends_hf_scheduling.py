@@ -160,7 +160,7 @@ def test_identity_ignores_how_answers_are_computed(make_backend):
 
 @pytest.mark.slow
 def test_the_throughput_benchmark_runs_on_the_tiny_model(tmp_path, vlmproprio_home):
-    """benchmarks/gpu_throughput.py --tiny, cut down: the GPU benchmark's code path must not rot untested."""
+    """perf/gpu_throughput.py --tiny, cut down: the GPU benchmark's code path must not rot untested."""
     import json
     import os
     import subprocess
@@ -169,7 +169,7 @@ def test_the_throughput_benchmark_runs_on_the_tiny_model(tmp_path, vlmproprio_ho
 
     root = Path(__file__).resolve().parents[1]
     out = tmp_path / "t.json"
-    cmd = [sys.executable, str(root / "benchmarks" / "gpu_throughput.py"), "--tiny", "--out", str(out)]
+    cmd = [sys.executable, str(root / "perf" / "gpu_throughput.py"), "--tiny", "--out", str(out)]
     cmd += ["--requests", "4", "--single", "2", "--batch-sizes", "2", "4", "--new-tokens", "4"]
     cmd += ["--p2-requests", "2", "--p3-requests", "1"]
     subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=300)

@@ -15,12 +15,12 @@ OFFLINE = ("NewConnectionError", "Temporary failure in name resolution", "Networ
 
 @pytest.mark.slow
 def test_gates_pass_in_a_fresh_venv_without_torch(tmp_path):
-    """benchmarks/gate_install.py copies the checkout, installs ``.[bench]`` into a new venv and runs
+    """perf/gate_install.py copies the checkout, installs ``.[bench]`` into a new venv and runs
     ``pytest benchmark/ --model reference --model tiny-qwen2-vl`` there (replay mode, fresh embedding cache)."""
     proc = subprocess.run(
         [
             sys.executable,
-            str(ROOT / "benchmarks" / "gate_install.py"),
+            str(ROOT / "perf" / "gate_install.py"),
             "--json",
             "--keep",
             str(tmp_path),

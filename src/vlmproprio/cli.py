@@ -512,6 +512,131 @@ def _add_no_progress(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+# The commands that read a run (score, report, show) take its folder first and its fixtures from run.json.
+RUN_FIXTURES_HELP = "fixture folder (default: the one in RUN_DIR/run.json)"
+
+
+def _add_run_dir(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory (the --out of the run command)")
+
+
+def _add_server(g, base_url_help: str) -> None:
+    """Where an openai: model is served (run, models, score --judge)."""
+    g.add_argument("--base-url", help=base_url_help)
+    g.add_argument("--api-key-env", default="OPENAI_API_KEY", help="environment variable holding the key")
+
+
+def _add_encoder(p, folder_help: str, batch_help: str) -> None:
+    """The sentence encoder of the caption embeddings (score, cassette embed)."""
+    p.add_argument("--encoder", default=None, metavar="PATH", help=folder_help)
+    p.add_argument("--encoder-batch-size", type=int, default=8, help=batch_help)
+
+
+# Sub-command texts: the line the top-level --help lists, then the description of the command's own --help.
+_TEXTS: dict[str, tuple[str, str | None]] = {
+    "verify": (
+        "check fixtures against their manifest and summarise them",
+        None,
+    ),
+    "manifest": (
+        "rewrite the fixtures' manifest.json from the files present",
+        None,
+    ),
+    "record": (
+        "(re)record the episodes with robosuite (needs the [record] extra)",
+        "Re-record episodes with the scripted operators. Bit-identical on this machine kind "
+        "(pinned mujoco, EGL or OSMesa rendering). Writes episodes, the manifest and a contact sheet.",
+    ),
+    "import-demos": (
+        "import robosuite / robomimic demo.hdf5 demonstrations as episodes (needs the [record] extra)",
+        "Replay each demonstration of a robosuite or robomimic demo.hdf5 in its robosuite env, "
+        "render a frame every 20 steps as the recorder does, derive states and ground truth, and write episodes "
+        "and the manifest into --out (usable as `vlmproprio run --model reference --fixtures OUT`). Tasks: door, "
+        "pick_place_cereal, pick_place_can, lift.",
+    ),
+    "make-tiny-model": (
+        "build a tiny random VLM checkpoint for tests (offline, sha256-reproducible)",
+        "Build a tiny random checkpoint (real architecture, ~1 MB, gibberish output) into a folder. "
+        "Usable as --model hf:DIR; the registry's tiny-* names build theirs on first use.",
+    ),
+    "run": (
+        "caption episodes with a model under each condition (Processes 1-3)",
+        "Run the paper's captioning method: for every episode and condition, Process 1 (a caption "
+        "per frame, in groups of k), Process 2 (a scene caption per group) and Process 3 (one final "
+        "instruction). Answers are cached by content, so an interrupted run resumes where it stopped.",
+    ),
+    "models": (
+        "the model registry, and per model whether it can run here (cassette, weights) and how to get it",
+        "List the registry's models. For each: is its cassette in <fixtures>/responses/ (replay), can "
+        "it run live here (weights in a local folder or the local Hugging Face cache, an API key or --base-url), "
+        "and if not, how to get what is missing.",
+    ),
+    "cassette export": (
+        "cache -> fixtures/responses/<model>.jsonl (merged with what is there)",
+        None,
+    ),
+    "cassette import": (
+        "cassette -> response cache",
+        None,
+    ),
+    "cassette embed": (
+        "(re)build <fixtures>/responses/<model>.embeddings.npz: the model's caption embeddings",
+        "Replay the model (its cassette; the reference captioner computes its answers) over every "
+        "episode and condition of the fixtures, embed every frame caption scoring uses, and store the vectors "
+        "beside the cassette (updating the manifest), so that scoring the replay needs no torch. Needs the "
+        "encoder (the [embed] extra).",
+    ),
+    "score": (
+        "score a run: caption rubric, segmentation sweep, paired statistics -> RUN_DIR/scores/",
+        "Score every transcript of a run against the fixtures' ground truth and write tables "
+        "(rows, aggregate, threshold sweep, paired statistics, audit) and a per-frame table (frames.csv) to "
+        "RUN_DIR/scores/. Frame-caption embeddings are cached in <cache root>/embeddings (see --cache-dir), so "
+        "re-scoring needs no torch.",
+    ),
+    "report": (
+        "tables, plots (paper Figs. 5-8) and an HTML page for a run -> RUN_DIR/report/",
+        "Write RUN_DIR/report/: report.md (aggregate and paired tables), PNG plots mirroring the "
+        "paper's Figs. 5-8 plus boundary F1 vs threshold, and index.html (summary, plots, tables, every "
+        "episode's frames beside its captions with the rubric matches highlighted). Scores the run first "
+        "if RUN_DIR/scores/ is missing.",
+    ),
+    "compare": (
+        "metric differences between two runs, or two models in one run",
+        "Print the differences B - A of the caption and segmentation metrics per task and "
+        "condition, paired by episode, with bootstrap 95% CIs and sign-flip p-values. Rows are matched on "
+        "model/task/condition; give --model-a/--model-b to compare two models (inside one run: omit RUN_B).",
+    ),
+    "power": (
+        "what 10 Door + 12 bin episodes can detect: power curves and minimal detectable effects",
+        "Simulate the suite's paired test (exact sign-flip, stats.py) over the episode structure "
+        "(10 Door, 12 bins, 22 pooled) for effects of known size, at Holm's first-step level alpha / family. "
+        "Writes power.json, power.md and power_curves.png to --out.",
+    ),
+    "export-dataset": (
+        "the episodes as a Hugging Face datasets folder (Parquet + card; needs the [dataset] extra)",
+        "Write the episodes as a Hugging Face `datasets` dataset: OUT/frames (one row per frame: "
+        "image, joints, end-effector pose, ground-truth phase and direction; the default config), OUT/episodes "
+        "and OUT/phases as Parquet, and a dataset card OUT/README.md. Load it with "
+        "datasets.load_dataset(OUT) or load_dataset(OUT, 'episodes').",
+    ),
+    "show": (
+        "the full prompt of every request of one episode and condition of a run",
+        "Re-render every request (Processes 1-3) of one (episode, condition) of a run from the settings "
+        "recorded in RUN_DIR/run.json, the fixtures and the answers in the transcript, and print each message's "
+        "full text (images as their sha256). Each request's cache key is compared with the one the run recorded; "
+        "exit status 1 if any differs (the prompts or fixtures changed since).",
+    ),
+}
+
+
+def _command(sub, name: str, func: Callable[[argparse.Namespace], int]) -> argparse.ArgumentParser:
+    """The sub-command ``name`` (of ``cassette``: "cassette NAME"), with its texts from _TEXTS, running ``func``."""
+    help, description = _TEXTS[name]
+    p = sub.add_parser(name.split()[-1], help=help, description=description)
+    p.set_defaults(func=func)
+    return p
+
+
 def _version() -> str:
     from importlib.metadata import PackageNotFoundError, version
 
@@ -521,33 +646,16 @@ def _version() -> str:
         return "unknown (not installed)"
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="vlmproprio",
-        description="Does proprioception make a VLM's captions and subtask segmentations of robot "
-        "episodes better? Record episodes, caption them with a model under four state conditions "
-        "and four controls, score the captions and segmentations, and report.",
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
-    parser.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
-    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+# ---------------------------------------------------------------------------------------------- sub-commands
 
-    p = sub.add_parser("verify", help="check fixtures against their manifest and summarise them")
+
+def _add_fixture_commands(sub) -> None:
+    """verify, manifest, record: the fixture folder itself."""
+    p = _command(sub, "verify", cmd_verify)
     _add_fixtures(p)
-    p.set_defaults(func=cmd_verify)
-
-    p = sub.add_parser("manifest", help="rewrite the fixtures' manifest.json from the files present")
+    p = _command(sub, "manifest", cmd_manifest)
     _add_fixtures(p)
-    p.set_defaults(func=cmd_manifest)
-
-    p = sub.add_parser(
-        "record",
-        help="(re)record the episodes with robosuite (needs the [record] extra)",
-        description="Re-record episodes with the scripted operators. Bit-identical on this machine kind "
-        "(pinned mujoco, EGL or OSMesa rendering). Writes episodes, the manifest and a contact sheet.",
-    )
+    p = _command(sub, "record", cmd_record)
     _add_fixtures(p, FIXTURES_HELP + "; written if it does not exist")
     _add_list(p, "--episodes", "only these episode ids, a comma list or repeated (default: all 22)", "IDS", spaces=True)
     p.add_argument(
@@ -556,16 +664,10 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="folder for one contact sheet per episode (default: runs/contact_sheets)",
     )
-    p.set_defaults(func=cmd_record)
 
-    p = sub.add_parser(
-        "import-demos",
-        help="import robosuite / robomimic demo.hdf5 demonstrations as episodes (needs the [record] extra)",
-        description="Replay each demonstration of a robosuite or robomimic demo.hdf5 in its robosuite env, "
-        "render a frame every 20 steps as the recorder does, derive states and ground truth, and write episodes "
-        "and the manifest into --out (usable as `vlmproprio run --model reference --fixtures OUT`). Tasks: door, "
-        "pick_place_cereal, pick_place_can, lift.",
-    )
+
+def _add_import_demos(sub) -> None:
+    p = _command(sub, "import-demos", cmd_import_demos)
     p.add_argument("file", type=Path, metavar="FILE.hdf5", help="robosuite or robomimic demo file")
     p.add_argument("--task", help="door | pick_place_cereal | pick_place_can | lift (default: from the file's env)")
     p.add_argument("--out", type=Path, required=True, help="fixture folder to write episodes/ and manifest.json into")
@@ -580,26 +682,17 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--prefix", help="episode id prefix (default: imp_<task>, giving ids like imp_door_01)")
     _add_no_progress(p)
-    p.set_defaults(func=cmd_import_demos)
 
-    p = sub.add_parser(
-        "make-tiny-model",
-        help="build a tiny random VLM checkpoint for tests (offline, sha256-reproducible)",
-        description="Build a tiny random checkpoint (real architecture, ~1 MB, gibberish output) into a folder. "
-        "Usable as --model hf:DIR; the registry's tiny-* names build theirs on first use.",
-    )
+
+def _add_make_tiny_model(sub) -> None:
+    p = _command(sub, "make-tiny-model", cmd_make_tiny_model)
     p.add_argument("--family", required=True, help="qwen2-vl, qwen2.5-vl or llava")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--seed", type=int, default=0)
-    p.set_defaults(func=cmd_make_tiny_model)
 
-    p = sub.add_parser(
-        "run",
-        help="caption episodes with a model under each condition (Processes 1-3)",
-        description="Run the paper's captioning method: for every episode and condition, Process 1 (a caption "
-        "per frame, in groups of k), Process 2 (a scene caption per group) and Process 3 (one final "
-        "instruction). Answers are cached by content, so an interrupted run resumes where it stopped.",
-    )
+
+def _add_run(sub) -> None:
+    p = _command(sub, "run", cmd_run)
     _add_fixtures(p)
     p.add_argument("--model", action="append", required=True, metavar="NAMES", help=MODEL_HELP)
     _add_list(p, "--conditions", CONDITIONS_HELP, "CONDS")
@@ -609,7 +702,16 @@ def build_parser() -> argparse.ArgumentParser:
     _add_cache_dir(p)
     p.add_argument("--report", action="store_true", help="also score the run and write its report")
     _add_no_progress(p)
-    g = p.add_argument_group("method")
+    _add_method_options(p.add_argument_group("method"))
+    _add_hf_options(p.add_argument_group("local models (hf)"))
+    g = p.add_argument_group("OpenAI-compatible servers (openai)")
+    _add_server(g, "server URL, e.g. http://127.0.0.1:8000/v1 for vLLM (default: OpenAI)")
+    g.add_argument("--concurrency", type=int, default=4, help="requests in flight (default 4)")
+    g.add_argument("--timeout", type=float, default=120.0, help="seconds per request (default 120)")
+
+
+def _add_method_options(g) -> None:
+    """run: how the paper's method is applied (the prompts and frames a model sees)."""
     g.add_argument("--k", type=int, default=5, help="frames per group (default 5, the paper's)")
     g.add_argument(
         "--frame-stride",
@@ -626,7 +728,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="suite (default): texts that say only what the condition sends; paper-verbatim: the paper's texts as printed",
     )
     g.add_argument("--max-new-tokens", type=int, help="per answer (default: the model's, 512; tiny test models 64)")
-    g = p.add_argument_group("local models (hf)")
+
+
+def _add_hf_options(g) -> None:
+    """run: how a local (hf:) model is loaded and batched."""
     g.add_argument(
         "--allow-download",
         action="store_true",
@@ -647,31 +752,21 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="static KV cache; on a GPU the decode step is compiled (first batches pay ~1 min; pays on long runs)",
     )
-    g = p.add_argument_group("OpenAI-compatible servers (openai)")
-    g.add_argument("--base-url", help="server URL, e.g. http://127.0.0.1:8000/v1 for vLLM (default: OpenAI)")
-    g.add_argument("--api-key-env", default="OPENAI_API_KEY", help="environment variable holding the key")
-    g.add_argument("--concurrency", type=int, default=4, help="requests in flight (default 4)")
-    g.add_argument("--timeout", type=float, default=120.0, help="seconds per request (default 120)")
-    p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser(
-        "models",
-        help="the model registry, and per model whether it can run here (cassette, weights) and how to get it",
-        description="List the registry's models. For each: is its cassette in <fixtures>/responses/ (replay), can "
-        "it run live here (weights in a local folder or the local Hugging Face cache, an API key or --base-url), "
-        "and if not, how to get what is missing.",
-    )
+
+def _add_models(sub) -> None:
+    p = _command(sub, "models", cmd_models)
     _add_fixtures(p)
     _add_list(p, "--model", "only these models (default: the whole registry); any name --model takes", "NAMES")
-    p.add_argument("--base-url", help="OpenAI-compatible server the openai models would use")
-    p.add_argument("--api-key-env", default="OPENAI_API_KEY", help="environment variable holding the key")
+    _add_server(p, "OpenAI-compatible server the openai models would use")
     p.add_argument("--allow-download", action="store_true", help="count hf: weights on the Hub as available")
     p.add_argument("--plain", action="store_true", help="only the registry table (name, backend, weights)")
-    p.set_defaults(func=cmd_models)
 
+
+def _add_cassette(sub) -> None:
     p = sub.add_parser("cassette", help="move recorded answers between the response cache and fixtures/responses/")
     csub = p.add_subparsers(dest="action", metavar="ACTION", required=True)
-    pe = csub.add_parser("export", help="cache -> fixtures/responses/<model>.jsonl (merged with what is there)")
+    pe = _command(csub, "cassette export", cmd_cassette)
     pe.add_argument("--model", required=True, help="model name, as given to --model when the answers were made")
     _add_cache_dir(pe)
     _add_fixtures(pe)
@@ -681,19 +776,14 @@ def build_parser() -> argparse.ArgumentParser:
     pe.add_argument(
         "--no-embed", action="store_true", help="do not (re)build the embeddings sidecar beside the cassette"
     )
-    pe.set_defaults(func=cmd_cassette)
-    pi = csub.add_parser("import", help="cassette -> response cache")
+    pi = _command(csub, "cassette import", cmd_cassette)
     pi.add_argument("cassette", type=Path, help="a .jsonl cassette")
     _add_cache_dir(pi)
-    pi.set_defaults(func=cmd_cassette)
-    pm = csub.add_parser(
-        "embed",
-        help="(re)build <fixtures>/responses/<model>.embeddings.npz: the model's caption embeddings",
-        description="Replay the model (its cassette; the reference captioner computes its answers) over every "
-        "episode and condition of the fixtures, embed every frame caption scoring uses, and store the vectors "
-        "beside the cassette (updating the manifest), so that scoring the replay needs no torch. Needs the "
-        "encoder (the [embed] extra).",
-    )
+    _add_cassette_embed(csub)
+
+
+def _add_cassette_embed(csub) -> None:
+    pm = _command(csub, "cassette embed", cmd_cassette_embed)
     pm.add_argument("--model", required=True, help="model name (a cassette in <fixtures>/responses/, or reference)")
     _add_fixtures(pm)
     pm.add_argument(
@@ -704,33 +794,37 @@ def build_parser() -> argparse.ArgumentParser:
         help="take the captions from this run instead of a replay of the whole benchmark (repeatable)",
     )
     pm.add_argument("--merge", action="store_true", help="add to the encoder's stored vectors instead of replacing")
-    pm.add_argument("--encoder", default=None, metavar="PATH", help="local sentence-transformers folder")
-    pm.add_argument("--encoder-batch-size", type=int, default=8, help="fixed encoder batch size (default 8)")
+    _add_encoder(pm, "local sentence-transformers folder", "fixed encoder batch size (default 8)")
     _add_cache_dir(pm)
     _add_no_progress(pm)
-    pm.set_defaults(func=cmd_cassette_embed)
 
-    p = sub.add_parser(
-        "score",
-        help="score a run: caption rubric, segmentation sweep, paired statistics -> RUN_DIR/scores/",
-        description="Score every transcript of a run against the fixtures' ground truth and write tables "
-        "(rows, aggregate, threshold sweep, paired statistics, audit) and a per-frame table (frames.csv) to "
-        "RUN_DIR/scores/. Frame-caption embeddings are cached in <cache root>/embeddings (see --cache-dir), so "
-        "re-scoring needs no torch.",
-    )
-    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory (the --out of the run command)")
-    _add_fixtures(p, "fixture folder (default: the one in RUN_DIR/run.json)")
+
+def _add_score(sub) -> None:
+    p = _command(sub, "score", cmd_score)
+    _add_run_dir(p)
+    _add_fixtures(p, RUN_FIXTURES_HELP)
     p.add_argument(
         "--threshold", type=float, default=0.65, help="similarity threshold for boundaries, in [0, 1] (default 0.65)"
     )
-    p.add_argument(
-        "--encoder", default=None, metavar="PATH", help="local sentence-transformers folder (default: all-MiniLM-L6-v2)"
+    _add_encoder(
+        p,
+        "local sentence-transformers folder (default: all-MiniLM-L6-v2)",
+        "fixed encoder batch size (part of the cache key)",
     )
-    p.add_argument("--encoder-batch-size", type=int, default=8, help="fixed encoder batch size (part of the cache key)")
     p.add_argument("--encoder-threads", type=int, default=1, help="torch threads while encoding (default 1)")
     _add_cache_dir(p)
     _add_no_progress(p)
-    g = p.add_argument_group("judge model (optional; the rubric stays the reference)")
+    _add_judge_options(p.add_argument_group("judge model (optional; the rubric stays the reference)"))
+    p.add_argument(
+        "--claims",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="pre-registered primary hypotheses (default: the packaged claims.yml; format in docs/metrics.md)",
+    )
+
+
+def _add_judge_options(g) -> None:
     g.add_argument(
         "--judge",
         metavar="MODEL",
@@ -744,27 +838,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="as `run --mode`: " + MODE_HELP,
     )
     g.add_argument("--judge-threads", type=int, default=1, help="torch threads of a local judge (default 1)")
-    g.add_argument("--base-url", help="OpenAI-compatible server URL for an openai: judge")
-    g.add_argument("--api-key-env", default="OPENAI_API_KEY", help="environment variable holding the key")
-    p.add_argument(
-        "--claims",
-        type=Path,
-        default=None,
-        metavar="FILE",
-        help="pre-registered primary hypotheses (default: the packaged claims.yml; format in docs/metrics.md)",
-    )
-    p.set_defaults(func=cmd_score)
+    _add_server(g, "OpenAI-compatible server URL for an openai: judge")
 
-    p = sub.add_parser(
-        "report",
-        help="tables, plots (paper Figs. 5-8) and an HTML page for a run -> RUN_DIR/report/",
-        description="Write RUN_DIR/report/: report.md (aggregate and paired tables), PNG plots mirroring the "
-        "paper's Figs. 5-8 plus boundary F1 vs threshold, and index.html (summary, plots, tables, every "
-        "episode's frames beside its captions with the rubric matches highlighted). Scores the run first "
-        "if RUN_DIR/scores/ is missing.",
-    )
-    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory (the --out of the run command)")
-    _add_fixtures(p, "fixture folder (default: the one in RUN_DIR/run.json)")
+
+def _add_report(sub) -> None:
+    p = _command(sub, "report", cmd_report)
+    _add_run_dir(p)
+    _add_fixtures(p, RUN_FIXTURES_HELP)
     p.add_argument("--out", type=Path, default=None, help="report folder (default: RUN_DIR/report)")
     _add_list(
         p,
@@ -779,15 +859,10 @@ def build_parser() -> argparse.ArgumentParser:
         "CONDS",
     )
     _add_no_progress(p)
-    p.set_defaults(func=cmd_report)
 
-    p = sub.add_parser(
-        "compare",
-        help="metric differences between two runs, or two models in one run",
-        description="Print the differences B - A of the caption and segmentation metrics per task and "
-        "condition, paired by episode, with bootstrap 95% CIs and sign-flip p-values. Rows are matched on "
-        "model/task/condition; give --model-a/--model-b to compare two models (inside one run: omit RUN_B).",
-    )
+
+def _add_compare(sub) -> None:
+    p = _command(sub, "compare", cmd_compare)
     p.add_argument("run_a", type=Path, metavar="RUN_A", help="scored run directory (A)")
     p.add_argument("run_b", type=Path, metavar="RUN_B", nargs="?", help="scored run directory (B; default RUN_A)")
     p.add_argument("--model-a", help="model of side A")
@@ -795,25 +870,20 @@ def build_parser() -> argparse.ArgumentParser:
     _add_list(p, "--task", "door, pick_place, all: a comma list or repeated (default: every one)", "TASKS")
     _add_list(p, "--metrics", "score columns, a comma list or repeated (default: the main metrics)", "COLS")
     p.add_argument("--out", type=Path, help="also write the comparison as Markdown to this file")
-    p.set_defaults(func=cmd_compare)
 
-    p = sub.add_parser(
-        "power",
-        help="what 10 Door + 12 bin episodes can detect: power curves and minimal detectable effects",
-        description="Simulate the suite's paired test (exact sign-flip, stats.py) over the episode structure "
-        "(10 Door, 12 bins, 22 pooled) for effects of known size, at Holm's first-step level alpha / family. "
-        "Writes power.json, power.md and power_curves.png to --out.",
-    )
+
+def _add_power(sub) -> None:
+    p = _command(sub, "power", cmd_power)
     p.add_argument("--alpha", type=float, help="family-wise alpha (default 0.05)")
     p.add_argument(
         "--family", type=int, help="primary hypotheses corrected together with Holm (default 4, as in claims.yml)"
     )
     p.add_argument("--sims", type=int, help="simulated data sets per point (default 1000)")
     p.add_argument("--seed", type=int, help="simulation seed (default: the statistics' seed)")
+    pair = dict(type=float, nargs=2)  # a value without and one with state
     p.add_argument(
         "--words",
-        type=float,
-        nargs=2,
+        **pair,
         metavar=("NONE", "BOTH"),
         help="mean words without and with state (default: the paper's 25.2 35.45)",
     )
@@ -821,45 +891,63 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sd-f1", type=float, help="per-episode SD of the paired boundary-F1 difference (default 0.15)")
     p.add_argument(
         "--correctness",
-        type=float,
-        nargs=2,
+        **pair,
         metavar=("P", "Q"),
         help="P(right) with and without state for the episodes-needed line (default 0.6 0.3)",
     )
     p.add_argument("--out", type=Path, default=Path("runs") / "power", help="output folder (default runs/power)")
-    p.set_defaults(func=cmd_power)
 
-    p = sub.add_parser(
-        "export-dataset",
-        help="the episodes as a Hugging Face datasets folder (Parquet + card; needs the [dataset] extra)",
-        description="Write the episodes as a Hugging Face `datasets` dataset: OUT/frames (one row per frame: "
-        "image, joints, end-effector pose, ground-truth phase and direction; the default config), OUT/episodes "
-        "and OUT/phases as Parquet, and a dataset card OUT/README.md. Load it with "
-        "datasets.load_dataset(OUT) or load_dataset(OUT, 'episodes').",
-    )
+
+def _add_export_dataset(sub) -> None:
+    p = _command(sub, "export-dataset", cmd_export_dataset)
     p.add_argument("out", type=Path, metavar="OUT", help="folder to write (must be empty or absent)")
     _add_fixtures(p)
     _add_list(
         p, "--episodes", "export these episodes only, a comma list or repeated (default: all)", "IDS", spaces=True
     )
     p.add_argument("--overwrite", action="store_true", help="replace an earlier export in OUT")
-    p.set_defaults(func=cmd_export_dataset)
 
-    p = sub.add_parser(
-        "show",
-        help="the full prompt of every request of one episode and condition of a run",
-        description="Re-render every request (Processes 1-3) of one (episode, condition) of a run from the settings "
-        "recorded in RUN_DIR/run.json, the fixtures and the answers in the transcript, and print each message's "
-        "full text (images as their sha256). Each request's cache key is compared with the one the run recorded; "
-        "exit status 1 if any differs (the prompts or fixtures changed since).",
-    )
-    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory (the --out of the run command)")
+
+def _add_show(sub) -> None:
+    p = _command(sub, "show", cmd_show)
+    _add_run_dir(p)
     p.add_argument("--episode", required=True, help="episode id, e.g. door_00")
     p.add_argument("--condition", required=True, help="condition, e.g. both")
     p.add_argument("--model", help="model name or slug (default: the run's only model)")
-    _add_fixtures(p, "fixture folder (default: the one in RUN_DIR/run.json)")
-    p.set_defaults(func=cmd_show)
+    _add_fixtures(p, RUN_FIXTURES_HELP)
 
+
+# Sub-commands in the order `vlmproprio --help` lists them.
+_SUBCOMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
+    _add_fixture_commands,
+    _add_import_demos,
+    _add_make_tiny_model,
+    _add_run,
+    _add_models,
+    _add_cassette,
+    _add_score,
+    _add_report,
+    _add_compare,
+    _add_power,
+    _add_export_dataset,
+    _add_show,
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="vlmproprio",
+        description="Does proprioception make a VLM's captions and subtask segmentations of robot "
+        "episodes better? Record episodes, caption them with a model under four state conditions "
+        "and four controls, score the captions and segmentations, and report.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for add in _SUBCOMMANDS:
+        add(sub)
     return parser
 
 

@@ -80,66 +80,74 @@ def _datasets():
 # ---------------------------------------------------------------------------------------------- features
 
 
+# Column types per config, in column order: a datasets Value dtype, IMAGE, or (dtype, length) for a list
+# (length None: any length).
+IMAGE = "image"
+COLUMNS: dict[str, dict[str, str | tuple[str, int | None]]] = {
+    FRAMES: {
+        "episode_id": "string",
+        "task": "string",
+        "frame_index": "int32",
+        "step": "int32",
+        "image": IMAGE,
+        "joints": ("float64", JOINT_DIM),
+        "ee": ("float64", EE_DIM),
+        "phase": "string",
+        "direction": "string",
+        "pixel_sha256": "string",
+    },
+    EPISODES: {
+        "episode_id": "string",
+        "task": "string",
+        "env_name": "string",
+        "target_object": "string",
+        "action": "string",
+        "instruction": "string",
+        "target_bin_index": "int32",  # None for tasks without a target compartment
+        "target_bin_row": "string",
+        "target_bin_side": "string",
+        "target_bin_description": "string",
+        "seed": "int64",
+        "steps": "int32",
+        "stride": "int32",
+        "n_frames": "int32",
+        "camera": "string",
+        "image_width": "int32",
+        "image_height": "int32",
+        "success": "bool",
+        "phase_names": ("string", None),
+        "direction_vocab": ("string", None),
+        "versions": "string",  # JSON object: robosuite, mujoco, vlmproprio
+        "extra": "string",  # JSON object: task-specific facts (e.g. the door hinge angle)
+    },
+    PHASES: {
+        "episode_id": "string",
+        "task": "string",
+        "phase_index": "int32",
+        "name": "string",
+        "start_step": "int32",
+        "end_step": "int32",  # inclusive
+        "first_frame": "int32",  # the sampled frames inside the span (-1 when none)
+        "last_frame": "int32",
+    },
+}
+
+
+def _feature(ds, kind: str | tuple[str, int | None]):
+    if kind == IMAGE:
+        return ds.Image()
+    if isinstance(kind, tuple):
+        dtype, length = kind
+        return ds.List(ds.Value(dtype)) if length is None else ds.List(ds.Value(dtype), length=length)
+    return ds.Value(kind)
+
+
 def features(config: str):
     """The ``datasets.Features`` of one config (images as ``Image``, state vectors as float64 lists)."""
     ds = _datasets()
-    Value, List = ds.Value, ds.List
-    if config == FRAMES:
-        return ds.Features(
-            {
-                "episode_id": Value("string"),
-                "task": Value("string"),
-                "frame_index": Value("int32"),
-                "step": Value("int32"),
-                "image": ds.Image(),
-                "joints": List(Value("float64"), length=JOINT_DIM),
-                "ee": List(Value("float64"), length=EE_DIM),
-                "phase": Value("string"),
-                "direction": Value("string"),
-                "pixel_sha256": Value("string"),
-            }
-        )
-    if config == EPISODES:
-        return ds.Features(
-            {
-                "episode_id": Value("string"),
-                "task": Value("string"),
-                "env_name": Value("string"),
-                "target_object": Value("string"),
-                "action": Value("string"),
-                "instruction": Value("string"),
-                "target_bin_index": Value("int32"),  # None for tasks without a target compartment
-                "target_bin_row": Value("string"),
-                "target_bin_side": Value("string"),
-                "target_bin_description": Value("string"),
-                "seed": Value("int64"),
-                "steps": Value("int32"),
-                "stride": Value("int32"),
-                "n_frames": Value("int32"),
-                "camera": Value("string"),
-                "image_width": Value("int32"),
-                "image_height": Value("int32"),
-                "success": Value("bool"),
-                "phase_names": List(Value("string")),
-                "direction_vocab": List(Value("string")),
-                "versions": Value("string"),  # JSON object: robosuite, mujoco, vlmproprio
-                "extra": Value("string"),  # JSON object: task-specific facts (e.g. the door hinge angle)
-            }
-        )
-    if config == PHASES:
-        return ds.Features(
-            {
-                "episode_id": Value("string"),
-                "task": Value("string"),
-                "phase_index": Value("int32"),
-                "name": Value("string"),
-                "start_step": Value("int32"),
-                "end_step": Value("int32"),  # inclusive
-                "first_frame": Value("int32"),  # the sampled frames inside the span (-1 when none)
-                "last_frame": Value("int32"),
-            }
-        )
-    raise ValueError(f"unknown config {config!r} (known: {', '.join(CONFIGS)})")
+    if config not in COLUMNS:
+        raise ValueError(f"unknown config {config!r} (known: {', '.join(CONFIGS)})")
+    return ds.Features({name: _feature(ds, kind) for name, kind in COLUMNS[config].items()})
 
 
 # ---------------------------------------------------------------------------------------------- rows

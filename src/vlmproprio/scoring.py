@@ -198,38 +198,45 @@ def load_lexicon(task: str) -> Lexicon:
         raise ScoringError(f"lexicon {LEXICON_PACKAGE}/{fname} or {COMMON_LEXICON}: malformed ({exc!r})") from exc
 
 
-def _build_lexicon(task: str, common: dict, spec: dict, fname: str, raw: bytes) -> Lexicon:
-    terms: dict[tuple[str, ...], list[Tag]] = {}
+class _Terms:
+    """The lexicon's terms and their tags, in the order added (that order is the order of a term's tags)."""
 
-    def add(text: str, tag: Tag) -> None:
+    def __init__(self) -> None:
+        self.tags: dict[tuple[str, ...], list[Tag]] = {}
+
+    def add(self, text: str, tag: Tag) -> None:
         toks = tuple(_words(text))
         if not toks:
             raise ValueError(f"empty term {text!r} in {tag.entry}")
-        terms.setdefault(toks, []).append(tag)
+        self.tags.setdefault(toks, []).append(tag)
 
+    def add_all(self, words, kind: str, value: str | None, entry: str) -> None:
+        """Each word tagged (kind, value, entry); value None: the word itself."""
+        for w in words:
+            self.add(w, Tag(kind, w if value is None else value, entry))
+
+    def index(self) -> dict[str, tuple[Term, ...]]:
+        """Terms by first word, longest first (then alphabetically), each tag once."""
+        index: dict[str, list[Term]] = {}
+        for toks, tags in self.tags.items():
+            index.setdefault(toks[0], []).append(Term(toks, tuple(dict.fromkeys(tags))))
+        return {k: tuple(sorted(v, key=lambda t: (-len(t.tokens), t.tokens))) for k, v in index.items()}
+
+
+def _add_common_terms(terms: _Terms, common: dict) -> None:
     c = "common.json"
     for key, words in common["objects"].items():
         if key == "about":
             continue
-        add(key, Tag("object", key, f"{c}:objects.{key}"))
-        for w in words:
-            add(w, Tag("object", key, f"{c}:objects.{key}"))
+        terms.add_all([key, *words], "object", key, f"{c}:objects.{key}")
     for d, words in common["directions"]["terms"].items():
-        for w in words:
-            add(w, Tag("direction", d, f"{c}:directions.terms.{d}"))
-    for w in common["negation"]["cues"]:
-        add(w, Tag("negation", w, f"{c}:negation.cues"))
-    for w in common["negation"].get("failure_cues", ()):
-        add(w, Tag("failure", w, f"{c}:negation.failure_cues"))
-    for w in common["neutral"]["terms"]:
-        add(w, Tag("neutral", w, f"{c}:neutral.terms"))
+        terms.add_all(words, "direction", d, f"{c}:directions.terms.{d}")
+    terms.add_all(common["negation"]["cues"], "negation", None, f"{c}:negation.cues")
+    terms.add_all(common["negation"].get("failure_cues", ()), "failure", None, f"{c}:negation.failure_cues")
+    terms.add_all(common["neutral"]["terms"], "neutral", None, f"{c}:neutral.terms")
 
-    action = spec["action"]
-    for group, words in action["groups"].items():
-        for w in words:
-            add(w, Tag("action", group, f"{fname}:action.groups.{group}"))
-    for w in action["wrong"]:
-        add(w, Tag("wrong_action", w, f"{fname}:action.wrong"))
+
+def _contextuals(terms: _Terms, action: dict, fname: str) -> dict[str, Contextual]:
     contextual = {}
     for name, spec_c in action.get("contextual", {}).items():
         if name == "about":
@@ -237,8 +244,7 @@ def _build_lexicon(task: str, common: dict, spec: dict, fname: str, raw: bytes) 
         entry = f"{fname}:action.contextual.{name}"
         if spec_c["as_group"] not in action["groups"]:
             raise ValueError(f"contextual {name!r}: group {spec_c['as_group']!r} is not in action.groups")
-        for w in spec_c["terms"]:
-            add(w, Tag("contextual", name, entry))
+        terms.add_all(spec_c["terms"], "contextual", name, entry)
         contextual[name] = Contextual(
             name,
             int(spec_c["window"]),
@@ -246,9 +252,13 @@ def _build_lexicon(task: str, common: dict, spec: dict, fname: str, raw: bytes) 
             frozenset(" ".join(_words(w)) for w in spec_c["when_next_is"]),
             entry,
         )
+    return contextual
+
+
+def _gapped_terms(action: dict, fname: str) -> dict[str, tuple[tuple[str, Tag], ...]]:
+    """Two-word terms that may have words between them: first word -> (second word, tag)."""
     gapped: dict[str, list[tuple[str, Tag]]] = {}
-    gap = action.get("gapped", {})
-    for group, words in gap.get("terms", {}).items():
+    for group, words in action.get("gapped", {}).get("terms", {}).items():
         if group not in action["groups"]:
             raise ValueError(f"gapped group {group!r} is not in action.groups")
         for w in words:
@@ -256,58 +266,71 @@ def _build_lexicon(task: str, common: dict, spec: dict, fname: str, raw: bytes) 
             if len(toks) != 2:
                 raise ValueError(f"gapped term {w!r} must be two words")
             gapped.setdefault(toks[0], []).append((toks[1], Tag("action", group, f"{fname}:action.gapped.{group}")))
+    return {k: tuple(v) for k, v in gapped.items()}
+
+
+def _required_groups(action: dict) -> tuple[tuple[str, ...], ...]:
     required = tuple(tuple(alts) for alts in action["required"])
     for alts in required:
         for g in alts:
             if g not in action["groups"]:
                 raise ValueError(f"required group {g!r} is not in action.groups")
+    return required
 
+
+def _motion(m: dict, groups: dict) -> Motion:
+    for g in m["groups"]:
+        if g not in groups:
+            raise ValueError(f"motion {m['name']!r}: group {g!r} is not in action.groups")
+    axes = tuple(m.get("axes", ("x", "y", "z")))
+    if not set(axes) <= set(AXES):
+        raise ValueError(f"motion {m['name']!r}: axes {axes} not among x, y, z")
+    return Motion(
+        name=m["name"],
+        groups=tuple(m["groups"]),
+        expected=tuple(m.get("expected", ())),
+        from_phase=m.get("from_phase", m.get("expected_from_phase", "")),
+        axes=axes,
+        min_share=float(m.get("min_share", 0.5)),
+        return_phase=m.get("return_phase", ""),
+        return_cues=tuple(m.get("return_cues", ())),
+    )
+
+
+def _compartment(terms: _Terms, traj: dict, fname: str) -> CompartmentRules | None:
+    if "compartment" not in traj:
+        return None
+    comp = traj["compartment"]
+    rules = CompartmentRules(window=int(comp["window"]))
+    where = f"{fname}:trajectory.compartment"
+    terms.add_all(comp["nouns"], "noun", None, f"{where}.nouns")
+    for row, words in comp["rows"].items():
+        terms.add_all(words, "row", row, f"{where}.rows.{row}")
+    for side, words in comp["sides"].items():
+        terms.add_all(words, "side", side, f"{where}.sides.{side}")
+    for image_row, words in comp.get("image_rows", {}).items():
+        terms.add_all(words, "image_row", image_row, f"{where}.image_rows.{image_row}")
+    for col, words in comp.get("columns", {}).items():
+        terms.add_all(words, "column", col, f"{where}.columns.{col}")
+    terms.add_all(comp["source_cues"], "source", None, f"{where}.source_cues")
+    return rules
+
+
+def _build_lexicon(task: str, common: dict, spec: dict, fname: str, raw: bytes) -> Lexicon:
+    # The order of the steps below is the order of every term's tags: keep it.
+    terms = _Terms()
+    _add_common_terms(terms, common)
+    action = spec["action"]
+    for group, words in action["groups"].items():
+        terms.add_all(words, "action", group, f"{fname}:action.groups.{group}")
+    terms.add_all(action["wrong"], "wrong_action", None, f"{fname}:action.wrong")
+    contextual = _contextuals(terms, action, fname)
+    gapped = _gapped_terms(action, fname)
+    required = _required_groups(action)
     traj = spec["trajectory"]
-    motions = []
-    for m in traj["motions"]:
-        for g in m["groups"]:
-            if g not in action["groups"]:
-                raise ValueError(f"motion {m['name']!r}: group {g!r} is not in action.groups")
-        axes = tuple(m.get("axes", ("x", "y", "z")))
-        if not set(axes) <= set(AXES):
-            raise ValueError(f"motion {m['name']!r}: axes {axes} not among x, y, z")
-        motions.append(
-            Motion(
-                name=m["name"],
-                groups=tuple(m["groups"]),
-                expected=tuple(m.get("expected", ())),
-                from_phase=m.get("from_phase", m.get("expected_from_phase", "")),
-                axes=axes,
-                min_share=float(m.get("min_share", 0.5)),
-                return_phase=m.get("return_phase", ""),
-                return_cues=tuple(m.get("return_cues", ())),
-            )
-        )
-    compartment = None
-    if "compartment" in traj:
-        comp = traj["compartment"]
-        compartment = CompartmentRules(window=int(comp["window"]))
-        for w in comp["nouns"]:
-            add(w, Tag("noun", w, f"{fname}:trajectory.compartment.nouns"))
-        for row, words in comp["rows"].items():
-            for w in words:
-                add(w, Tag("row", row, f"{fname}:trajectory.compartment.rows.{row}"))
-        for side, words in comp["sides"].items():
-            for w in words:
-                add(w, Tag("side", side, f"{fname}:trajectory.compartment.sides.{side}"))
-        for where, words in comp.get("image_rows", {}).items():
-            for w in words:
-                add(w, Tag("image_row", where, f"{fname}:trajectory.compartment.image_rows.{where}"))
-        for col, words in comp.get("columns", {}).items():
-            for w in words:
-                add(w, Tag("column", col, f"{fname}:trajectory.compartment.columns.{col}"))
-        for w in comp["source_cues"]:
-            add(w, Tag("source", w, f"{fname}:trajectory.compartment.source_cues"))
-
-    index: dict[str, list[Term]] = {}
-    for toks, tags in terms.items():
-        index.setdefault(toks[0], []).append(Term(toks, tuple(dict.fromkeys(tags))))
-    frozen_index = {k: tuple(sorted(v, key=lambda t: (-len(t.tokens), t.tokens))) for k, v in index.items()}
+    motions = tuple(_motion(m, action["groups"]) for m in traj["motions"])
+    compartment = _compartment(terms, traj, fname)
+    gap = action.get("gapped", {})
     breaks = common["clause_breaks"]
     neg = common["negation"]
     return Lexicon(
@@ -322,13 +345,13 @@ def _build_lexicon(task: str, common: dict, spec: dict, fname: str, raw: bytes) 
         objects={k: tuple(" ".join(_words(w)) for w in v) for k, v in common["objects"].items() if k != "about"},
         opposite=dict(common["directions"]["opposite"]),
         required=required,
-        motions=tuple(motions),
+        motions=motions,
         compartment=compartment,
-        index=frozen_index,
+        index=terms.index(),
         keep_together=frozenset(tuple(_words(w)) for w in breaks.get("keep_together", ())),
         contextual=contextual,
         gapped_window=int(gap.get("window", 0)),
-        gapped={k: tuple(v) for k, v in gapped.items()},
+        gapped=gapped,
         gapped_needs={g: frozenset(w) for g, w in gap.get("needs_between", {}).items()},
     )
 

@@ -202,6 +202,24 @@ def _user(parts: Sequence[Part]) -> tuple[Message, ...]:
     return (Message("user", tuple(parts)),)
 
 
+def _process_prompt(
+    condition: Condition,
+    options: PromptOptions,
+    texts: Sequence[str],
+    frames: Sequence[FrameView],
+    answer: str,
+    label: str = "Image",
+) -> tuple[Message, ...]:
+    """Every process's message: the preamble, the process's own texts, the frames, then the answer format."""
+    parts: list[Part] = [
+        TextPart(preamble(condition, options)),
+        *(TextPart(t) for t in texts),
+        *_frames_parts(frames, label=label),
+        TextPart(answer),
+    ]
+    return _user(parts)
+
+
 # ---------------------------------------------------------------------------------------------- processes
 
 
@@ -214,13 +232,8 @@ def process1(frames: Sequence[FrameView], condition: Condition, options: PromptO
         head = template("process1.txt", SUITE_SET).format(basis=w["basis"], count_words=count_words, unit=unit)
     else:
         head = template("process1.txt").format(count_words=count_words)
-    parts: list[Part] = [
-        TextPart(preamble(condition, options)),
-        TextPart(head),
-        *_frames_parts(frames),
-        TextPart(template("answer_process1.txt", options.template_set).format(count=n)),
-    ]
-    return _user(parts)
+    answer = template("answer_process1.txt", options.template_set).format(count=n)
+    return _process_prompt(condition, options, [head], frames, answer)
 
 
 def process2(
@@ -230,14 +243,8 @@ def process2(
     options: PromptOptions = PromptOptions(),
 ):
     described = "\n".join(f"Frame {f.number}: {c}" for f, c in zip(frames, captions, strict=True))
-    parts: list[Part] = [
-        TextPart(preamble(condition, options)),
-        TextPart(template("process2.txt")),
-        TextPart("Described robot arm actions:\n" + described),
-        *_frames_parts(frames),
-        TextPart(template("answer_process2.txt")),
-    ]
-    return _user(parts)
+    texts = [template("process2.txt"), "Described robot arm actions:\n" + described]
+    return _process_prompt(condition, options, texts, frames, template("answer_process2.txt"))
 
 
 def process3(
@@ -247,15 +254,11 @@ def process3(
     options: PromptOptions = PromptOptions(),
 ):
     summaries = "\n".join(f"Scene {i + 1}: {c}" for i, c in enumerate(scene_captions))
-    parts: list[Part] = [
-        TextPart(preamble(condition, options)),
-        TextPart(
-            template("process3.txt", SUITE_SET).format(incorporating=_words_for(condition)["incorporating"])
-            if options.version == "suite"
-            else template("process3.txt")
-        ),
-        TextPart("Summaries of the task:\n" + summaries),
-        *_frames_parts(frames, label="Image of frame"),
-        TextPart(template("answer_process3.txt")),
-    ]
-    return _user(parts)
+    head = (
+        template("process3.txt", SUITE_SET).format(incorporating=_words_for(condition)["incorporating"])
+        if options.version == "suite"
+        else template("process3.txt")
+    )
+    texts = [head, "Summaries of the task:\n" + summaries]
+    answer = template("answer_process3.txt")
+    return _process_prompt(condition, options, texts, frames, answer, label="Image of frame")

@@ -204,93 +204,119 @@ def _headers(handler: BaseHTTPRequestHandler) -> dict[str, str]:
     return {k.lower(): v for k, v in handler.headers.items()}  # HTTP header names are case-insensitive
 
 
-def _make_handler(server: FakeOpenAIServer) -> type[BaseHTTPRequestHandler]:
-    class Handler(BaseHTTPRequestHandler):
-        protocol_version = "HTTP/1.1"  # keep-alive, like real servers; every response has Content-Length
+_MODELS = {"object": "list", "data": [{"id": "fake", "object": "model", "owned_by": "me"}]}
+# A body cut off mid-JSON, as a proxy dropping the connection would leave it.
+_MALFORMED = b'{"id": "chatcmpl-broken", "choices": [{"index": 0, "message": {"conte'
+# status, message and error type of the injected HTTP errors
+_ERRORS = {
+    "429": (429, "rate limited (injected)", "rate_limit"),
+    "500": (500, "internal error (injected)", "server_error"),
+}
 
-        def setup(self) -> None:
-            super().setup()
-            # headers and body go out in two writes; with Nagle's algorithm the second waits for the client's
-            # delayed ACK (~40 ms per request on Linux). Real servers (uvicorn, vLLM) turn it off too.
-            self.connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
-        def log_message(self, format: str, *args) -> None:
-            """Silent: request lines may carry anything, and tests want clean output."""
+class _Handler(BaseHTTPRequestHandler):
+    """The request handler; ``fake`` (set per server by ``_make_handler``) holds the faults and records."""
 
-        def _send_json(self, status: int, payload: object, headers: dict[str, str] | None = None) -> None:
-            data = json.dumps(payload).encode("utf-8")
-            self._send_bytes(status, data, headers)
+    protocol_version = "HTTP/1.1"  # keep-alive, like real servers; every response has Content-Length
+    fake: FakeOpenAIServer
 
-        def _send_bytes(self, status: int, data: bytes, headers: dict[str, str] | None = None) -> None:
-            self.send_response(status)
-            self.send_header("Content-Type", "application/json")
-            self.send_header("Content-Length", str(len(data)))
-            for k, v in (headers or {}).items():
-                self.send_header(k, v)
-            self.end_headers()
-            self.wfile.write(data)
+    def setup(self) -> None:
+        super().setup()
+        # headers and body go out in two writes; with Nagle's algorithm the second waits for the client's
+        # delayed ACK (~40 ms per request on Linux). Real servers (uvicorn, vLLM) turn it off too.
+        self.connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
-        def _reset(self) -> None:
-            # SO_LINGER with a zero timeout turns close() into a TCP RST: the client sees "connection reset".
-            self.connection.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+    def log_message(self, format: str, *args) -> None:
+        """Silent: request lines may carry anything, and tests want clean output."""
+
+    # ------------------------------------------------------------------------ responses
+    def _send_json(self, status: int, payload: object, headers: dict[str, str] | None = None) -> None:
+        data = json.dumps(payload).encode("utf-8")
+        self._send_bytes(status, data, headers)
+
+    def _send_bytes(self, status: int, data: bytes, headers: dict[str, str] | None = None) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(data)))
+        for k, v in (headers or {}).items():
+            self.send_header(k, v)
+        self.end_headers()
+        self.wfile.write(data)
+
+    def _send_error(self, status: int, message: str, kind: str, headers: dict[str, str] | None = None) -> None:
+        self._send_json(status, {"error": {"message": message, "type": kind}}, headers=headers)
+
+    def _not_found(self) -> None:
+        self._send_error(404, f"no route {self.path}", "not_found")
+
+    def _reset(self) -> None:
+        # SO_LINGER with a zero timeout turns close() into a TCP RST: the client sees "connection reset".
+        self.connection.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        self.close_connection = True
+        self.rfile.close()
+        self.connection.close()
+
+    # ------------------------------------------------------------------------ requests
+    def _record(self, method: str, body: dict | None, fault: Fault | None = None) -> None:
+        kind = fault.kind if fault else None
+        self.fake._record(RecordedRequest(method, self.path, _headers(self), body, kind, time.time()))
+
+    def _read_body(self):
+        """The request's JSON body, None when there is none or it is not JSON."""
+        length = int(self.headers.get("Content-Length") or 0)
+        raw = self.rfile.read(length) if length else b""
+        try:
+            return json.loads(raw.decode("utf-8")) if raw else None
+        except (UnicodeDecodeError, ValueError):
+            return None
+
+    def do_GET(self) -> None:
+        self._record("GET", None)
+        if self.path.rstrip("/").endswith("/models"):
+            self._send_json(200, _MODELS)
+        else:
+            self._not_found()
+
+    def do_POST(self) -> None:
+        self.fake._enter()
+        try:
+            self._post()
+        finally:
+            self.fake._leave()
+
+    def _post(self) -> None:
+        body = self._read_body()
+        if not self.path.rstrip("/").endswith("/chat/completions"):
+            self._record("POST", body)
+            self._not_found()
+            return
+        fault = self.fake._next_fault()
+        self._record("POST", body, fault)
+        if not isinstance(body, dict) or not isinstance(body.get("messages"), list):
+            self._send_error(400, "body must be JSON with 'messages'", "invalid")
+            return
+        if self.fake.latency_s > 0 and self.fake._closing.wait(self.fake.latency_s):
+            return
+        if fault is None:
+            self._send_json(200, _completion(body, self.fake.responder(body)))
+        else:
+            self._serve_fault(fault, body)
+
+    def _serve_fault(self, fault: Fault, body: dict) -> None:
+        if fault.kind in _ERRORS:
+            headers = {} if fault.retry_after is None else {"Retry-After": f"{fault.retry_after:g}"}
+            self._send_error(*_ERRORS[fault.kind], headers=headers)
+        elif fault.kind == "malformed":
+            self._send_bytes(200, _MALFORMED)
+        elif fault.kind == "empty":
+            self._send_json(200, _completion(body, ""))
+        elif fault.kind == "reset":
+            self._reset()
+        elif fault.kind == "hang":
+            self.fake._closing.wait(self.fake.hang_s)
             self.close_connection = True
-            self.rfile.close()
-            self.connection.close()
 
-        def do_GET(self) -> None:
-            server._record(RecordedRequest("GET", self.path, _headers(self), None, None, time.time()))
-            if self.path.rstrip("/").endswith("/models"):
-                self._send_json(200, {"object": "list", "data": [{"id": "fake", "object": "model", "owned_by": "me"}]})
-            else:
-                self._send_json(404, {"error": {"message": f"no route {self.path}", "type": "not_found"}})
 
-        def do_POST(self) -> None:
-            server._enter()
-            try:
-                self._post()
-            finally:
-                server._leave()
-
-        def _post(self) -> None:
-            length = int(self.headers.get("Content-Length") or 0)
-            raw = self.rfile.read(length) if length else b""
-            try:
-                body = json.loads(raw.decode("utf-8")) if raw else None
-            except (UnicodeDecodeError, ValueError):
-                body = None
-            if not self.path.rstrip("/").endswith("/chat/completions"):
-                server._record(RecordedRequest("POST", self.path, _headers(self), body, None, time.time()))
-                self._send_json(404, {"error": {"message": f"no route {self.path}", "type": "not_found"}})
-                return
-            fault = server._next_fault()
-            server._record(
-                RecordedRequest("POST", self.path, _headers(self), body, fault.kind if fault else None, time.time())
-            )
-            if not isinstance(body, dict) or not isinstance(body.get("messages"), list):
-                self._send_json(400, {"error": {"message": "body must be JSON with 'messages'", "type": "invalid"}})
-                return
-            if server.latency_s > 0 and server._closing.wait(server.latency_s):
-                return
-            if fault is None:
-                self._send_json(200, _completion(body, server.responder(body)))
-            elif fault.kind == "429":
-                headers = {} if fault.retry_after is None else {"Retry-After": f"{fault.retry_after:g}"}
-                self._send_json(
-                    429, {"error": {"message": "rate limited (injected)", "type": "rate_limit"}}, headers=headers
-                )
-            elif fault.kind == "500":
-                headers = {} if fault.retry_after is None else {"Retry-After": f"{fault.retry_after:g}"}
-                self._send_json(
-                    500, {"error": {"message": "internal error (injected)", "type": "server_error"}}, headers=headers
-                )
-            elif fault.kind == "malformed":
-                self._send_bytes(200, b'{"id": "chatcmpl-broken", "choices": [{"index": 0, "message": {"conte')
-            elif fault.kind == "empty":
-                self._send_json(200, _completion(body, ""))
-            elif fault.kind == "reset":
-                self._reset()
-            elif fault.kind == "hang":
-                server._closing.wait(server.hang_s)
-                self.close_connection = True
-
-    return Handler
+def _make_handler(server: FakeOpenAIServer) -> type[BaseHTTPRequestHandler]:
+    """A handler class bound to ``server`` (tests wrap this to serve a variant)."""
+    return type("Handler", (_Handler,), {"fake": server})

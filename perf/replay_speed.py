@@ -1,7 +1,7 @@
 """Cached replay on CPU: the whole benchmark for one model (22 episodes x 8 conditions, scoring, segmentation
 sweep, paired statistics), cold and warm, each in a fresh process.
 
-    python benchmarks/replay_speed.py [--model tiny-qwen2-vl] [--model reference] [--repeat 2]
+    python perf/replay_speed.py [--model tiny-qwen2-vl] [--model reference] [--repeat 2]
 
 cold: a fresh process and an empty embedding cache (caption embeddings come from the model's sidecar,
 fixtures/responses/<model>.embeddings.npz; without one the sentence encoder would load and embed every caption);

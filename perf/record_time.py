@@ -1,6 +1,6 @@
 """Wall time of `vlmproprio record` for all 22 episodes into a temporary folder (target: <= 10 min on 2 cores).
 
-    python benchmarks/record_time.py [--episodes door_00 bin0_00]
+    python perf/record_time.py [--episodes door_00 bin0_00]
 
 Runs the recorder in a fresh process, exactly as a user would (robosuite +
 MuJoCo, headless rendering), then compares the manifest it wrote with the

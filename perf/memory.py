@@ -1,6 +1,6 @@
 """Peak memory (RSS) of a replay run + scoring and of a tiny-model live run, each step in a fresh process.
 
-    python benchmarks/memory.py [--model reference] [--live-episodes door_00 bin0_00]
+    python perf/memory.py [--model reference] [--live-episodes door_00 bin0_00]
 
 Every step is a ``vlmproprio`` command in a new Python process; its peak
 resident set size is the kernel's own high-water mark for that process

@@ -1,7 +1,7 @@
 """Live captioning throughput of the suite's own hf path, side by side in one run.
 
-    python benchmarks/gpu_throughput.py --out benchmarks/results/gpu_throughput.json   # one GPU (CUDA)
-    python benchmarks/gpu_throughput.py --tiny                                         # CPU, tiny model, < 1 min
+    python perf/gpu_throughput.py --out perf/results/gpu_throughput.json   # one GPU (CUDA)
+    python perf/gpu_throughput.py --tiny                                         # CPU, tiny model, < 1 min
 
 Model: the full-size Qwen2-VL-2B-Instruct architecture, built from its published
 config with random bf16 weights (no weights can be downloaded; throughput does

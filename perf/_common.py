@@ -1,4 +1,4 @@
-"""What every benchmark script shares: the checkout's own code first on the path, machine facts, tables."""
+"""What every speed and memory script (perf/) shares: the checkout's own code first on the path, machine facts, tables."""
 
 from __future__ import annotations
 
@@ -32,7 +32,7 @@ def machine() -> dict:
 
 
 def table(rows: Sequence[dict], columns: Sequence[str]) -> str:
-    """A Markdown table of ``rows`` (missing cells blank), ready to paste into benchmarks/README.md."""
+    """A Markdown table of ``rows`` (missing cells blank), ready to paste into perf/README.md."""
 
     def cell(v) -> str:
         if v is None:
