@@ -1,7 +1,7 @@
 """One model's benchmark: run it for the selected cells, score the run, index the results by cell.
 
 What ``pytest benchmark/`` does per model (vlmproprio.pytest_plugin holds only options, fixtures and test
-generation): the same runner and scorer as ``vlmproprio run`` and ``vlmproprio score``, with local models
+generation): the same runner and scorer as the command line's run and score commands, with local models
 pinned to one thread so a live CPU run is bit-identical to its recording.
 """
 

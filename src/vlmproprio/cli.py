@@ -196,8 +196,34 @@ def _embed_recorded(runs, run_dir: Path, fixtures: Path) -> None:
         _print_sidecar(r.name, build_sidecar(r.name, fixtures, encoder_spec(), texts, merge=True))
 
 
+# command-line option (argparse dest) -> backend setting: the one place the two vocabularies meet
+SETTING_OPTIONS = {
+    "device": "device",
+    "dtype": "dtype",
+    "attn": "attn_implementation",
+    "batch_size": "max_batch_size",
+    "threads": "threads",
+    "judge_threads": "threads",
+    "static_cache": "static_cache",
+    "batch_tokens": "max_batch_tokens",
+    "allow_download": "allow_download",
+    "base_url": "base_url",
+    "api_key_env": "api_key_env",
+    "concurrency": "concurrency",
+    "timeout": "timeout_s",
+}
+
+
+def backend_settings(args: argparse.Namespace, **paths):
+    """The backend settings a command's options give (those it has), plus ``paths`` (cassette_dir, home)."""
+    from vlmproprio.backends.settings import BackendSettings
+
+    given = {setting: getattr(args, dest) for dest, setting in SETTING_OPTIONS.items() if hasattr(args, dest)}
+    return BackendSettings.of(**given, **paths)
+
+
 def cmd_models(args: argparse.Namespace) -> int:
-    from vlmproprio.backends.registry import BackendSettings, format_availability
+    from vlmproprio.backends.registry import format_availability
     from vlmproprio.models import format_registry
 
     if args.plain:
@@ -210,9 +236,7 @@ def cmd_models(args: argparse.Namespace) -> int:
     except UsageError:
         fixtures = None
     cassettes = fixtures / "responses" if fixtures else Path("fixtures") / "responses"
-    settings = BackendSettings.of(
-        cassette_dir=cassettes, base_url=args.base_url, api_key_env=args.api_key_env, allow_download=args.allow_download
-    )
+    settings = backend_settings(args, cassette_dir=cassettes)
     print(f"cassettes: {cassettes}" + ("" if fixtures else " (no fixture folder found: pass --fixtures)"))
     print(format_availability(settings, split_list(args.model) or None))
     return 0
@@ -228,7 +252,6 @@ def _check_run_ranges(args: argparse.Namespace) -> None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    from vlmproprio.backends.registry import BackendSettings
     from vlmproprio.conditions import parse_conditions
     from vlmproprio.pipeline import PipelineSettings
     from vlmproprio.prompts import PromptOptions
@@ -255,21 +278,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             prompt=PromptOptions(example=not args.no_example, version=args.prompt_version),
         ),
         max_new_tokens=args.max_new_tokens,
-        backend=BackendSettings.of(
-            device=args.device,
-            dtype=args.dtype,
-            attn_implementation=args.attn,
-            max_batch_size=args.batch_size,
-            threads=args.threads,
-            static_cache=args.static_cache,
-            max_batch_tokens=args.batch_tokens,
-            base_url=args.base_url,
-            api_key_env=args.api_key_env,
-            concurrency=args.concurrency,
-            timeout_s=args.timeout,
-            home=cache_root,
-            allow_download=args.allow_download,
-        ),
+        backend=backend_settings(args, home=cache_root),
         progress=not args.no_progress,
     )
     runs = run(plan)
@@ -455,17 +464,11 @@ def cmd_export_dataset(args: argparse.Namespace) -> int:
 def _score_with_judge(args: argparse.Namespace, score: dict):
     """score_run with a judge model whose requests go through the response cache and cassettes like captioning."""
     from vlmproprio.answering import open_answerer
-    from vlmproprio.backends.settings import BackendSettings
     from vlmproprio.evaluation import read_run_manifest, resolve_fixtures, score_run
 
     # through the bounded JSON loader: a damaged run.json is one line naming it, as everywhere else
     fixtures = resolve_fixtures(args.run_dir, read_run_manifest(args.run_dir), args.fixtures)
-    settings = BackendSettings.of(
-        threads=args.judge_threads,
-        base_url=args.base_url,
-        api_key_env=args.api_key_env,
-        cassette_dir=fixtures / "responses",
-    )
+    settings = backend_settings(args, cassette_dir=fixtures / "responses")
     with open_answerer(args.judge, args.judge_mode, settings, cache_root_of(args)) as judge:
         return score_run(args.run_dir, **score, judge=judge)
 
