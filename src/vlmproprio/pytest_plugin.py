@@ -29,18 +29,8 @@ from typing import TYPE_CHECKING
 
 import pytest
 
+from vlmproprio import options as opt
 from vlmproprio.locations import FIXTURES_ENV
-from vlmproprio.options import (
-    CONDITIONS_HELP,
-    DEFAULT_CONDITIONS,
-    DEFAULT_MODE,
-    EPISODES_HELP,
-    FIXTURES_HELP,
-    MODE_HELP,
-    MODEL_HELP,
-    MODES,
-    split_list,
-)
 
 if TYPE_CHECKING:  # annotations only: the work is in vlmproprio.bench, imported when a model runs
     from vlmproprio.bench import ModelResult
@@ -54,13 +44,13 @@ MODEL_FIXTURE = "bench_model"
 # Long, namespaced names only: the plugin may be loaded into sessions that define short options of their own.
 # the repository's conftest.py adds the short spellings of the documented command `pytest benchmark/ --model NAME`.
 OPTIONS: dict[str, dict] = {
-    "model": dict(action="append", metavar="NAME", help=f"{MODEL_HELP}; default: {', '.join(DEFAULT_MODELS)}"),
-    "conditions": dict(action="append", metavar="CONDS", help=CONDITIONS_HELP),
-    "episodes": dict(action="append", metavar="IDS", help=EPISODES_HELP),
-    "mode": dict(default=DEFAULT_MODE, choices=MODES, help=MODE_HELP),
+    "model": dict(action="append", metavar="NAME", help=f"{opt.MODEL_HELP}; default: {', '.join(DEFAULT_MODELS)}"),
+    "conditions": dict(action="append", metavar="CONDS", help=opt.CONDITIONS_HELP),
+    "episodes": dict(action="append", metavar="IDS", help=opt.EPISODES_HELP),
+    "mode": dict(default=opt.DEFAULT_MODE, choices=opt.MODES, help=opt.MODE_HELP),
     "run-dir": dict(default=None, metavar="DIR", help="keep runs, scores and reports here (default: a temp folder)"),
     # pytest itself owns --fixtures (it lists test fixtures): the benchmark's fixture folder is --fixtures-dir
-    "fixtures-dir": dict(default=None, metavar="DIR", help=FIXTURES_HELP),
+    "fixtures-dir": dict(default=None, metavar="DIR", help=opt.FIXTURES_HELP),
 }
 SHORT_ALIASES = {"fixtures-dir": ("--bench-fixtures",)}
 BENCH_KEY = pytest.StashKey["BenchSession"]()
@@ -196,7 +186,7 @@ def _session(config: pytest.Config) -> BenchSession:
     except VlmproprioError as exc:
         raise pytest.UsageError(f"--fixtures-dir: {exc}") from None
     episodes_opt = option(config, "episodes")
-    episodes = tuple(split_list(episodes_opt))
+    episodes = tuple(opt.split_list(episodes_opt))
     if episodes_opt is not None and not episodes:  # `--episodes ""` (an empty shell variable) is not "all"
         raise pytest.UsageError("--episodes: no episode ids given; name some (comma separated) or leave it out for all")
     if not episodes:
@@ -212,8 +202,8 @@ def _session(config: pytest.Config) -> BenchSession:
     from vlmproprio.models import resolve_model
 
     try:
-        models = tuple(map(resolve_model, split_list(option(config, "model")) or DEFAULT_MODELS))
-        conditions = tuple(c.name for c in parse_conditions(option(config, "conditions") or DEFAULT_CONDITIONS))
+        models = tuple(map(resolve_model, opt.split_list(option(config, "model")) or DEFAULT_MODELS))
+        conditions = tuple(c.name for c in parse_conditions(option(config, "conditions") or opt.DEFAULT_CONDITIONS))
     except VlmproprioError as exc:
         raise pytest.UsageError(str(exc)) from None
     run_dir = option(config, "run-dir")
