@@ -54,8 +54,9 @@ class ModelRef:
         return self.kind == "reference"
 
     @property
-    def is_tiny(self) -> bool:
-        return self.weights.startswith(TINY_PREFIX)
+    def tiny_family(self) -> str | None:
+        """The family of a tiny random model the suite builds itself (``tiny:qwen2-vl`` -> ``qwen2-vl``)."""
+        return self.weights[len(TINY_PREFIX) :] if self.weights.startswith(TINY_PREFIX) else None
 
     def cassette(self, cassette_dir: Path | str = DEFAULT_CASSETTE_DIR) -> Path:
         """Where this model's cassette lives in ``cassette_dir``."""

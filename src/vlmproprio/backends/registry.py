@@ -75,18 +75,17 @@ def _create_hf(ref: ModelRef, settings: BackendSettings) -> Backend:
     from vlmproprio.backends.hf import HFBackend
 
     weights, model_id = ref.weights, None
-    if ref.is_tiny:
+    if ref.tiny_family:
         from vlmproprio.backends.tiny import ensure_tiny_model
-        from vlmproprio.models import TINY_PREFIX
 
-        weights, model_id = str(ensure_tiny_model(ref.weights[len(TINY_PREFIX) :], settings.home)), ref.name
+        weights, model_id = str(ensure_tiny_model(ref.tiny_family, settings.home)), ref.name
     return HFBackend(weights, model_id=model_id, **asdict(settings.hf))
 
 
 def _hf_live(ref: ModelRef, settings: BackendSettings) -> Availability:
     if missing := _missing_modules("torch", "transformers"):
         return Availability(False, f"needs {', '.join(missing)}: pip install 'vlmproprio[hf]'")
-    if ref.is_tiny:
+    if ref.tiny_family:
         return Availability(True, "tiny model, built locally on first use")
     from vlmproprio.backends.hf import hf_weights_available
 
