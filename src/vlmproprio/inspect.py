@@ -71,7 +71,7 @@ from vlmproprio.evaluation import PAIRED_METRICS, score_run
 from vlmproprio.locations import resolve_fixtures
 from vlmproprio.pipeline import CellRun, PipelineSettings
 from vlmproprio.segmentation import DEFAULT_THRESHOLD, caption_present
-from vlmproprio.transcripts import Transcript, write_transcript
+from vlmproprio.transcripts import Transcript, cell_key, cell_name, write_transcript
 
 DEFAULT_FIXTURES = ""  # "": --fixtures rules of the CLI ($VLMPROPRIO_FIXTURES, else the repository's)
 TRANSCRIPT_KEY = "vlmproprio.transcript"
@@ -266,7 +266,7 @@ def _suite_row_cached(transcript_json: str, fixtures: str, threshold: float, emb
             comparisons=[],
             write=False,
         )
-    key = f"{transcript.model}/{transcript.episode_id}__{transcript.condition}"
+    key = cell_key(transcript.model, transcript.episode_id, transcript.condition)
     [row] = tables.rows
     return {"row": row, "audit": tables.audit[key], "trace": tables.traces[key]}
 
@@ -347,7 +347,7 @@ def samples(fixtures: str, condition: str, episodes: str | Sequence[str] | None 
         for cond in parse_conditions(condition):
             out.append(
                 Sample(
-                    id=f"{eid}__{cond.name}",
+                    id=cell_name(eid, cond.name),
                     input=f"Caption robot episode {eid} ({ep.task}, {len(ep.frames)} frames) under condition "
                     f"{cond.name}: {cond.description}",
                     target=ep.instruction,

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from vlmproprio.errors import VlmproprioError
 from vlmproprio.io import load_json
+from vlmproprio.transcripts import cell_key
 
 SCORES_DIR = "scores"
 # the score files a report needs; sweep.json (per episode) is left out: the plots use the means
@@ -120,7 +121,7 @@ def load_run_scores(run_dir: str | Path) -> RunScores:
     for i, r in enumerate(t["rows"]):
         if not isinstance(r, dict) or not all(k in r for k in ("model", "episode_id", "task", "condition")):
             raise ReportError(f"{d / 'rows.json'}: row {i} lacks model/episode_id/task/condition; re-score the run")
-    scored = {f"{r['model']}/{r['episode_id']}__{r['condition']}" for r in t["rows"]}
+    scored = {cell_key(r["model"], r["episode_id"], r["condition"]) for r in t["rows"]}
     on_disk = {f"{p.parent.name}/{p.stem}" for p in (run_dir / "transcripts").glob("*/*.json")}
     if on_disk and on_disk != scored:
         new, gone = sorted(on_disk - scored), sorted(scored - on_disk)
