@@ -28,7 +28,7 @@ STAGES: list[tuple[str, ...]] = [
     ("scoring", "embeddings", "segmentation"),
     ("stats", "power"),
     ("verdicts",),
-    ("evaluation", "frame_table", "sidecars"),
+    ("evaluation", "frame_table", "sidecars"),  # evaluation/: its own order, EVALUATION_ORDER below
     ("report",),
     ("dataset_export", "inspect"),
     ("cli", "pytest_plugin"),
@@ -83,3 +83,37 @@ def test_no_module_imports_a_later_stage(module: str, path: Path) -> None:
     mine = stage_of(module)
     later = [m for m in imported_stages(path) if m != "__version__" and stage_of(m) > mine]
     assert not later, f"vlmproprio.{module} (stage {mine}) imports later stage(s): {', '.join(later)}"
+
+
+# evaluation/ is one stage made of modules in the order score_run runs them; inside it data flows one way too
+EVALUATION_ORDER = (
+    "definitions",
+    "formats",
+    "inputs",
+    "captions",
+    "cells",
+    "out_of_sample",
+    "chance",
+    "tables",
+    "statistics",
+    "controls",
+    "meta",
+    "judge",
+    "generations",
+    "run",
+)
+
+
+def test_every_evaluation_module_has_a_place_in_the_order() -> None:
+    modules = {p.stem for p in (SRC / "evaluation").glob("*.py") if p.stem != "__init__"}
+    assert modules == set(EVALUATION_ORDER)
+
+
+@pytest.mark.parametrize("name", EVALUATION_ORDER)
+def test_no_evaluation_module_imports_a_later_one(name: str) -> None:
+    mine = EVALUATION_ORDER.index(name)
+    inside = [
+        m.split(".")[1] for m in imported_stages(SRC / "evaluation" / f"{name}.py") if m.startswith("evaluation.")
+    ]
+    later = [m for m in inside if EVALUATION_ORDER.index(m) > mine]
+    assert not later, f"vlmproprio.evaluation.{name} imports later evaluation module(s): {', '.join(later)}"

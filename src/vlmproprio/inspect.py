@@ -198,16 +198,12 @@ def pipeline_settings(
 
 
 @solver
-def paper_processes(
-    fixtures: str = DEFAULT_FIXTURES,
-    k: int = 5,
-    frame_stride: int = 1,
-    max_images_p3: int | None = None,
-    example: bool = True,
-    max_tokens: int = 512,
-):
-    """Processes 1-3 of the paper for the sample's (episode, condition), with vlmproprio's prompts and parser."""
-    settings = pipeline_settings(k, frame_stride, max_images_p3, example, max_tokens)
+def paper_processes(fixtures: str = DEFAULT_FIXTURES, **pipeline: Any):
+    """Processes 1-3 of the paper for the sample's (episode, condition), with vlmproprio's prompts and parser.
+
+    ``pipeline``: the settings ``pipeline_settings`` takes (k, frame_stride, max_images_p3, example, max_tokens;
+    the defaults are its own), so the solver and the task cannot disagree on them."""
+    settings = pipeline_settings(**pipeline)
 
     async def solve(state: TaskState, generate: Generate) -> TaskState:
         episodes = _fixture_set(str(Path(state.metadata.get("fixtures", fixtures)).resolve()))
@@ -388,7 +384,14 @@ def proprio_captions(
     ds = MemoryDataset(samples(fixtures, condition, episodes), name="vlmproprio-episodes")
     return Task(
         dataset=ds,
-        solver=paper_processes(fixtures, k, frame_stride, max_images_p3, example, max_tokens),
+        solver=paper_processes(
+            fixtures,
+            k=k,
+            frame_stride=frame_stride,
+            max_images_p3=max_images_p3,
+            example=example,
+            max_tokens=max_tokens,
+        ),
         scorer=[
             caption_rubric(fixtures, threshold, embedding_cache),
             segmentation(fixtures, threshold, embedding_cache),

@@ -12,7 +12,7 @@ from vlmproprio.evaluation.definitions import SCORES_VERSION
 from vlmproprio.evaluation.formats import dumps_csv, dumps_json
 from vlmproprio.evaluation.inputs import ScoreRunError, read_run_manifest, run_transcript_files
 from vlmproprio.evaluation.tables import ScoreTables
-from vlmproprio.io import WriteError, atomic_write_text, load_json, sha256_file, writing
+from vlmproprio.io import WriteError, atomic_write_text, load_json, load_required_json, sha256_file, writing
 
 
 def write_score_tables(run_dir: str | Path, tables: ScoreTables, inputs: dict | None = None) -> list[Path]:
@@ -160,12 +160,11 @@ def check_scores(run_dir: str | Path, names: Sequence[str] = ()) -> dict:
     run_dir = Path(run_dir)
     out = run_dir / "scores"
     fix = f"re-score the run: `vlmproprio score {run_dir}`"
-    try:
-        stamp = load_json(out / STAMP_FILE, error=StaleScoresError)
-    except FileNotFoundError:
-        raise StaleScoresError(
-            f"{out}: scores are out of date: no {STAMP_FILE} (scores from an older version or incomplete); {fix}"
-        ) from None
+    stamp = load_required_json(
+        out / STAMP_FILE,
+        f"{out}: scores are out of date: no {STAMP_FILE} (scores from an older version or incomplete); {fix}",
+        error=StaleScoresError,
+    )
     if not isinstance(stamp, dict) or not isinstance(stamp.get("inputs"), dict):
         raise StaleScoresError(f"{out / STAMP_FILE}: scores are out of date: not a score stamp; {fix}")
     recorded, files = stamp["inputs"], stamp.get("files", {})

@@ -111,7 +111,6 @@ def score_run(
     cassette is scored without loading the encoder. ``progress`` shows a bar over the stages (load, embed,
     score, statistics, write). ``claims`` is the file of pre-registered primary hypotheses (default: the
     packaged vlmproprio/claims.yml); their verdicts and the sanity warnings go to scores/verdicts.json."""
-
     stages = _Stages(progress)
     claim_set = load_claims(claims)
     settings = ScoreSettings(threshold, thresholds, comparisons, n_boot, n_perm, seed)
@@ -119,34 +118,28 @@ def score_run(
     stages.done("load", "embedding captions")
     captions = embed_captions(inputs, encoder, embedding_cache, sidecars)
     stages.done("embed", "rubric and segmentation")
-    cells = score_cells(inputs, captions, thresholds, threshold)
+    cells = score_cells(inputs, captions, settings.thresholds, settings.threshold)
     stages.lap("score")
     chance_dir = Path(chance_cache) if chance_cache is not None else captions.cache_dir.parent / "chance"
-    baselines = add_segmentation_baselines(inputs, cells, thresholds, chance_dir)
+    baselines = add_segmentation_baselines(inputs, cells, settings.thresholds, chance_dir)
     stages.done("chance", "paired statistics")
     tables = aggregate_tables(inputs, cells)
     controls = control_correlations(inputs.fixtures, inputs.episodes, inputs.conditions)
     stats = paired_statistics(tables.rows, inputs.conditions, cells.outputs, settings, claim_set, baselines.group_size)
     stages.done("stats", "writing")
     meta = score_meta(inputs, captions, cells.lexicons, baselines, controls, stats, settings)
-    timing = _timing(stages.seconds, baselines, captions)
-    judged = None
-    if judge is not None:  # grades the final captions; its agreement with the rubric goes to scores/judge.json
-        judged = judge_table(judge, cells.finals)
-        timing["judge_s"] = stages.lap("judge")
     scores = ScoreTables(
-        rows=tables.rows,
-        aggregate=tables.aggregate,
-        sweep=tables.sweep_rows,
-        sweep_aggregate=tables.sweep_aggregate,
+        **vars(tables),
         paired=stats.paired,
         audit=cells.audit,
         traces=cells.traces,
         meta=meta,
-        timing=timing,
-        judge=judged,
+        timing=_timing(stages.seconds, baselines, captions),
         verdicts=stats.verdicts,
     )
+    if judge is not None:  # grades the final captions; its agreement with the rubric goes to scores/judge.json
+        scores.judge = judge_table(judge, cells.finals)
+        scores.timing["judge_s"] = stages.lap("judge")
     if write:
         _write(inputs, scores)
     stages.close()

@@ -78,11 +78,12 @@ def _sort_rows(rows: list[dict], episode_order: dict[str, int], conds: list[str]
 
 @dataclass
 class Aggregates:
-    """Rows and sweep rows sorted (model, task, episode in run order, condition, threshold), and their means."""
+    """Rows and sweep rows sorted (model, task, episode in run order, condition, threshold), and their means; the
+    fields of ScoreTables of the same names."""
 
     rows: list[dict]
-    sweep_rows: list[dict]
     aggregate: list[dict]
+    sweep: list[dict]
     sweep_aggregate: list[dict]
 
 
@@ -93,4 +94,4 @@ def aggregate_tables(inputs: RunInputs, cells: CellScores) -> Aggregates:
     skip = (*ID_COLUMNS, "seg_threshold", "threshold")
     aggregate = _group_means(rows, ("model", "task", "condition"), skip, add_all_task=True)
     sweep_aggregate = _group_means(sweep_rows, ("model", "task", "condition", "threshold"), skip, add_all_task=True)
-    return Aggregates(rows, sweep_rows, _sort_rows(aggregate, order, conds), _sort_rows(sweep_aggregate, order, conds))
+    return Aggregates(rows, _sort_rows(aggregate, order, conds), sweep_rows, _sort_rows(sweep_aggregate, order, conds))

@@ -13,17 +13,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from vlmproprio.evaluation.definitions import CAPTION_METRICS
 from vlmproprio.report.data import ReportError, RunScores, load_run_scores
 from vlmproprio.report.tables import Table, fmt_diff, fmt_p, fmt_value, label, metric_kind, to_markdown
 
+# the caption metrics the paired statistics use; segmentation also at the fixed threshold, which two runs share
 COMPARE_METRICS = (
-    "final_object_correct",
-    "final_action_correct",
-    "final_trajectory_mentioned",
-    "final_trajectory_correct",
-    "final_all_correct",
-    "final_words",
-    "final_hits_per_word",
+    *CAPTION_METRICS,
     "seg_points",
     "seg_f1_tol1",
     "seg_loo_f1_tol1",
