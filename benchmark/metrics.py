@@ -11,10 +11,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from vlmproprio.scoring import ITEMS
+
 BASELINES = Path(__file__).parent / "baselines"
 # absolute and relative tolerance for float metrics (rates, F1, similarities)
 FLOAT_TOLERANCE = {"atol": 1e-6, "rtol": 1e-6}
-ITEMS = ("object", "action", "trajectory")
 
 
 def baseline_path(model_slug: str, episode_id: str, condition: str, suffix: str) -> Path:

@@ -29,7 +29,7 @@ STAGES: list[tuple[str, ...]] = [
     ("scoring", "embeddings", "segmentation"),
     ("stats", "power"),
     ("verdicts",),
-    ("evaluation", "frame_table", "sidecars"),
+    ("evaluation", "frame_table", "sidecars"),  # evaluation/: its own order, EVALUATION_ORDER below
     ("report",),
     ("dataset_export", "inspect"),
     ("bench",),
@@ -85,3 +85,94 @@ def test_no_module_imports_a_later_stage(module: str, path: Path) -> None:
     mine = stage_of(module)
     later = [m for m in imported_stages(path) if m != "__version__" and stage_of(m) > mine]
     assert not later, f"vlmproprio.{module} (stage {mine}) imports later stage(s): {', '.join(later)}"
+
+
+# evaluation/ is one stage made of modules in the order score_run runs them; inside it data flows one way too
+EVALUATION_ORDER = (
+    "definitions",
+    "formats",
+    "inputs",
+    "captions",
+    "cells",
+    "out_of_sample",
+    "chance",
+    "tables",
+    "statistics",
+    "controls",
+    "meta",
+    "judge",
+    "generations",
+    "run",
+)
+
+
+def test_every_evaluation_module_has_a_place_in_the_order() -> None:
+    modules = {p.stem for p in (SRC / "evaluation").glob("*.py") if p.stem != "__init__"}
+    assert modules == set(EVALUATION_ORDER)
+
+
+@pytest.mark.parametrize("name", EVALUATION_ORDER)
+def test_no_evaluation_module_imports_a_later_one(name: str) -> None:
+    mine = EVALUATION_ORDER.index(name)
+    inside = [
+        m.split(".")[1] for m in imported_stages(SRC / "evaluation" / f"{name}.py") if m.startswith("evaluation.")
+    ]
+    later = [m for m in inside if EVALUATION_ORDER.index(m) > mine]
+    assert not later, f"vlmproprio.evaluation.{name} imports later evaluation module(s): {', '.join(later)}"
+
+
+# ---------------------------------------------------------------------------------------------- shape rules
+
+MAX_FUNCTION_LINES = 80
+# functions that are data tables (one entry per line), not logic: exempt from the length rule
+DATA_TABLES: set[str] = set()
+
+
+def _functions(tree: ast.AST):
+    for node in ast.walk(tree):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            yield node
+
+
+def test_no_function_is_longer_than_80_lines() -> None:
+    long = []
+    for module, path in _modules():
+        for fn in _functions(ast.parse(path.read_text())):
+            lines = fn.end_lineno - fn.lineno + 1
+            if lines > MAX_FUNCTION_LINES and f"{module}.{fn.name}" not in DATA_TABLES:
+                long.append(f"vlmproprio.{module}.{fn.name} ({lines} lines)")
+    assert not long, "split these into named steps: " + ", ".join(long)
+
+
+# what a model name's syntax is made of: only vlmproprio.models reads it
+MODEL_NAME_SYNTAX = ("HF_PREFIX", "OPENAI_PREFIX", "TINY_PREFIX", '"hf:"', '"openai:"', '"tiny:"', "_check_name")
+
+
+def test_a_model_name_is_parsed_in_one_place() -> None:
+    offenders = []
+    for module, path in _modules():
+        if module == "models":
+            continue
+        text = path.read_text()
+        offenders += [f"vlmproprio.{module}: {s}" for s in MODEL_NAME_SYNTAX if s in text]
+    assert not offenders, "parse model names with vlmproprio.models.resolve_model: " + ", ".join(offenders)
+
+
+BACKEND_API = {"identity", "generate", "plan_batches", "calls_model", "max_batch_size", "close"}
+
+
+def test_backend_capabilities_are_declared_not_probed() -> None:
+    """backends.base.Backend declares its capabilities: code asks them, it does not getattr-probe them."""
+    probes = []
+    for module, path in _modules():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if (
+                isinstance(node, ast.Call)
+                and isinstance(node.func, ast.Name)
+                and node.func.id in ("getattr", "hasattr")
+                and len(node.args) >= 2
+                and isinstance(node.args[1], ast.Constant)
+                and node.args[1].value in BACKEND_API
+            ):
+                probes.append(f"vlmproprio.{module}:{node.lineno} {ast.unparse(node)}")
+    assert not probes, "capability probes: " + "; ".join(probes)

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from scoring_helpers import fake_spec, prefill_embeddings, write_synthetic_run
+from vlmproprio.answering import Answerer
 from vlmproprio.backends.base import Backend
 from vlmproprio.cache import key_identity, request_key
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest
@@ -240,7 +241,7 @@ class RuleJudge(Backend):
 def test_judge_scorer_reports_agreement_with_the_rubric(small_run):
     run, ids = small_run
     judge = RuleJudge()
-    t = score_run(run, encoder=fake_spec(), judge=judge, write=False)
+    t = score_run(run, encoder=fake_spec(), judge=Answerer(judge, mode="live"), write=False)
     # judge requests are content-addressed like captioning's: a caption judged against the same ground
     # truth is asked once, whichever episode or condition it came from
     assert len(t.judge["verdicts"]) == len(ids) * len(CONDS)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 from vlmproprio.episodes import atomic_write_text
 from vlmproprio.scoring import ITEMS
-from vlmproprio.transcripts import read_transcripts
+from vlmproprio.transcripts import cell_key, read_transcripts
 
 FRAMES_CSV = "frames.csv"
 COLUMNS: tuple[str, ...] = (
@@ -53,7 +53,7 @@ def frame_rows(run_dir: Path, tables) -> list[dict]:
     out: list[dict] = []
     for row in tables.rows:
         key = (row["model"], row["episode_id"], row["condition"])
-        name = f"{key[0]}/{key[1]}__{key[2]}"
+        name = cell_key(*key)
         t, trace, audit = transcripts.get(key), tables.traces.get(name), tables.audit.get(name)
         if t is None or trace is None or audit is None:
             continue

@@ -71,7 +71,7 @@ from vlmproprio.evaluation import PAIRED_METRICS, score_run
 from vlmproprio.locations import resolve_fixtures
 from vlmproprio.pipeline import CellRun, PipelineSettings
 from vlmproprio.segmentation import DEFAULT_THRESHOLD, caption_present
-from vlmproprio.transcripts import Transcript, write_transcript
+from vlmproprio.transcripts import Transcript, cell_key, cell_name, write_transcript
 
 DEFAULT_FIXTURES = ""  # "": --fixtures rules of the CLI ($VLMPROPRIO_FIXTURES, else the repository's)
 TRANSCRIPT_KEY = "vlmproprio.transcript"
@@ -198,16 +198,12 @@ def pipeline_settings(
 
 
 @solver
-def paper_processes(
-    fixtures: str = DEFAULT_FIXTURES,
-    k: int = 5,
-    frame_stride: int = 1,
-    max_images_p3: int | None = None,
-    example: bool = True,
-    max_tokens: int = 512,
-):
-    """Processes 1-3 of the paper for the sample's (episode, condition), with vlmproprio's prompts and parser."""
-    settings = pipeline_settings(k, frame_stride, max_images_p3, example, max_tokens)
+def paper_processes(fixtures: str = DEFAULT_FIXTURES, **pipeline: Any):
+    """Processes 1-3 of the paper for the sample's (episode, condition), with vlmproprio's prompts and parser.
+
+    ``pipeline``: the settings ``pipeline_settings`` takes (k, frame_stride, max_images_p3, example, max_tokens;
+    the defaults are its own), so the solver and the task cannot disagree on them."""
+    settings = pipeline_settings(**pipeline)
 
     async def solve(state: TaskState, generate: Generate) -> TaskState:
         episodes = _fixture_set(str(Path(state.metadata.get("fixtures", fixtures)).resolve()))
@@ -266,7 +262,7 @@ def _suite_row_cached(transcript_json: str, fixtures: str, threshold: float, emb
             comparisons=[],
             write=False,
         )
-    key = f"{transcript.model}/{transcript.episode_id}__{transcript.condition}"
+    key = cell_key(transcript.model, transcript.episode_id, transcript.condition)
     [row] = tables.rows
     return {"row": row, "audit": tables.audit[key], "trace": tables.traces[key]}
 
@@ -347,7 +343,7 @@ def samples(fixtures: str, condition: str, episodes: str | Sequence[str] | None 
         for cond in parse_conditions(condition):
             out.append(
                 Sample(
-                    id=f"{eid}__{cond.name}",
+                    id=cell_name(eid, cond.name),
                     input=f"Caption robot episode {eid} ({ep.task}, {len(ep.frames)} frames) under condition "
                     f"{cond.name}: {cond.description}",
                     target=ep.instruction,
@@ -388,7 +384,14 @@ def proprio_captions(
     ds = MemoryDataset(samples(fixtures, condition, episodes), name="vlmproprio-episodes")
     return Task(
         dataset=ds,
-        solver=paper_processes(fixtures, k, frame_stride, max_images_p3, example, max_tokens),
+        solver=paper_processes(
+            fixtures,
+            k=k,
+            frame_stride=frame_stride,
+            max_images_p3=max_images_p3,
+            example=example,
+            max_tokens=max_tokens,
+        ),
         scorer=[
             caption_rubric(fixtures, threshold, embedding_cache),
             segmentation(fixtures, threshold, embedding_cache),

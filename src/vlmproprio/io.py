@@ -194,3 +194,12 @@ def load_json(
     except OSError as exc:
         raise error(f"{path}: cannot read ({_cause(exc)})") from exc
     return loads_json(data, path, max_bytes=max_bytes, max_depth=max_depth, error=error)
+
+
+def load_required_json(path: Path | str, missing: str, *, error: type[VlmproprioError] = JSONLoadError):
+    """``load_json`` of a file that must be there: a missing file is ``error`` too, with the message ``missing``
+    (which says what the file is and what to do), not a FileNotFoundError."""
+    try:
+        return load_json(path, error=error)
+    except FileNotFoundError:
+        raise error(missing) from None

@@ -46,13 +46,14 @@ from __future__ import annotations
 import hashlib
 import json
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from functools import cache, lru_cache
 from importlib import resources
 
 import numpy as np
 
+from vlmproprio.chat import Answer, ChatRequest
 from vlmproprio.episodes import Episode
 from vlmproprio.errors import VlmproprioError
 
@@ -1052,7 +1053,7 @@ def judge_request(text: str, episode: Episode, condition: str = ""):
     """The chat request asking a judge model to grade one caption of an episode."""
     from string import Template
 
-    from vlmproprio.chat import ChatRequest, GenerationConfig, Message, RequestTag, TextPart
+    from vlmproprio.chat import GenerationConfig, Message, RequestTag, TextPart
 
     prompt = judge_prompt()
     exp = expectation_for(episode)
@@ -1091,20 +1092,16 @@ def parse_judge_answer(raw: str) -> JudgeVerdict:
     return JudgeVerdict(items, raw)
 
 
-def judge_captions(judge, captions: Sequence[tuple[str, Episode, str]]) -> list[JudgeVerdict]:
-    """Grade (text, episode, condition) triples, in order.
-
-    ``judge`` is an ``answering.Answerer`` (see :func:`answering.open_answerer`): its requests go through the same
-    content-addressed response cache and cassettes as captioning, so a judge's verdicts replay
-    bit-identically. A plain Backend is wrapped in an Answerer without a store (same keys, batches)."""
-    from vlmproprio.answering import Answerer
-    from vlmproprio.backends.base import BackendError
-
-    cached = judge if isinstance(judge, Answerer) else Answerer(judge, mode="live")
+def judge_captions(
+    answer: Callable[[Sequence[ChatRequest]], list[Answer]], captions: Sequence[tuple[str, Episode, str]]
+) -> list[JudgeVerdict]:
+    """Grade (text, episode, condition) triples, in order, with ``answer`` (a judge's ``Answerer.answer``, see
+    vlmproprio.answering: its requests go through the same content-addressed response cache and cassettes as
+    captioning, so a judge's verdicts replay bit-identically)."""
     requests = [judge_request(text, ep, cond) for text, ep, cond in captions]
-    answers = cached.answer(requests) if requests else []
+    answers = answer(requests) if requests else []
     if len(answers) != len(requests):
-        raise BackendError(f"judge answered {len(answers)} of {len(requests)} requests")
+        raise ScoringError(f"judge answered {len(answers)} of {len(requests)} requests")
     return [parse_judge_answer(a.text) for a in answers]
 
 

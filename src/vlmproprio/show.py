@@ -18,7 +18,7 @@ from vlmproprio.chat import ChatRequest, ImagePart
 from vlmproprio.conditions import frame_states, get_condition
 from vlmproprio.episodes import load_episodes
 from vlmproprio.errors import UsageError
-from vlmproprio.io import load_json
+from vlmproprio.io import load_required_json
 from vlmproprio.parsing import Parsed
 from vlmproprio.pipeline import CellRun, PipelineSettings
 from vlmproprio.transcripts import read_transcripts
@@ -38,12 +38,9 @@ class ShownRequest:
 
 def _run_manifest(run_dir: Path) -> dict:
     path = run_dir / "run.json"
-    try:  # the bounded loader: damaged or deeply nested JSON is one line naming the file
-        data = load_json(path, error=UsageError)
-    except FileNotFoundError:
-        raise UsageError(
-            f"{path}: missing; is {run_dir} a run directory (`vlmproprio run --model NAME --out {run_dir}`)?"
-        ) from None
+    # the bounded loader: damaged or deeply nested JSON is one line naming the file
+    missing = f"{path}: missing; is {run_dir} a run directory (`vlmproprio run --model NAME --out {run_dir}`)?"
+    data = load_required_json(path, missing, error=UsageError)
     if not isinstance(data, dict) or not isinstance(data.get("models"), list):
         raise UsageError(f"{path}: not a run manifest")
     return data

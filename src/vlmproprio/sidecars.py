@@ -35,7 +35,7 @@ from vlmproprio.episodes import load_episodes, register_fixture_file, sha256_fil
 from vlmproprio.errors import VlmproprioError
 from vlmproprio.evaluation import frame_texts
 from vlmproprio.models import ModelRef, resolve_model
-from vlmproprio.transcripts import read_transcripts
+from vlmproprio.transcripts import read_transcripts, transcript_path
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +58,7 @@ def run_caption_texts(run_dir: str | Path, fixtures: str | Path, slug: str) -> s
     frames = {e.episode_id: len(e.frames) for e in load_episodes(fixtures, ids, verify=False)}
     texts: set[str] = set()
     for t in transcripts:
-        where = f"{run_dir}/transcripts/{t.model}/{t.episode_id}__{t.condition}.json"
+        where = str(transcript_path(run_dir, t.model, t.episode_id, t.condition))
         captions, statuses = frame_texts(t, frames[t.episode_id], where)
         texts.update(x for x, s in zip(captions, statuses, strict=True) if s != "missing")
     return texts

@@ -82,12 +82,27 @@ class Transcript:
         return cls(**d)
 
 
+def cell_name(episode_id: str, condition: str) -> str:
+    """One (episode, condition) cell of a model: the stem of its transcript file."""
+    return f"{episode_id}__{condition}"
+
+
+def cell_key(model: str, episode_id: str, condition: str) -> str:
+    """One (model, episode, condition) cell: the key of its entry in scores/audit.json and traces.json, and its
+    transcript's path below RUN_DIR/transcripts/ without the suffix."""
+    return f"{model}/{cell_name(episode_id, condition)}"
+
+
 def transcript_filename(episode_id: str, condition: str) -> str:
-    return f"{episode_id}__{condition}.json"
+    return f"{cell_name(episode_id, condition)}.json"
+
+
+def transcript_path(run_dir: Path | str, model: str, episode_id: str, condition: str) -> Path:
+    return Path(run_dir) / "transcripts" / model / transcript_filename(episode_id, condition)
 
 
 def write_transcript(run_dir: Path, t: Transcript) -> Path:
-    path = Path(run_dir) / "transcripts" / t.model / transcript_filename(t.episode_id, t.condition)
+    path = transcript_path(run_dir, t.model, t.episode_id, t.condition)
     atomic_write_text(path, json.dumps(t.to_dict(), indent=1, ensure_ascii=False) + "\n")
     return path
 

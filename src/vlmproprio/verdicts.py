@@ -74,6 +74,8 @@ class Hypothesis:
 
 @dataclass(frozen=True)
 class Claims:
+    """The pre-registered primary hypotheses of a claims file, where they come from (source, version, sha256), alpha."""
+
     alpha: float
     hypotheses: tuple[Hypothesis, ...]
     source: str

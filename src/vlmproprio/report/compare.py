@@ -13,17 +13,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from vlmproprio.evaluation.definitions import CAPTION_METRICS
 from vlmproprio.report.data import ReportError, RunScores, load_run_scores
 from vlmproprio.report.tables import Table, fmt_diff, fmt_p, fmt_value, label, metric_kind, to_markdown
 
+# the caption metrics the paired statistics use; segmentation also at the fixed threshold, which two runs share
 COMPARE_METRICS = (
-    "final_object_correct",
-    "final_action_correct",
-    "final_trajectory_mentioned",
-    "final_trajectory_correct",
-    "final_all_correct",
-    "final_words",
-    "final_hits_per_word",
+    *CAPTION_METRICS,
     "seg_points",
     "seg_f1_tol1",
     "seg_loo_f1_tol1",
@@ -110,6 +106,83 @@ def _pick(s: RunScores, model: str | None, side: str) -> list[dict]:
     return rows
 
 
+@dataclass
+class _Matched:
+    """The rows of both sides by match key (model or "", task, condition, episode), and the keys both have."""
+
+    a: dict[tuple, dict]
+    b: dict[tuple, dict]
+    common: list[tuple]
+
+
+def _compare_by_model(sa: RunScores, sb: RunScores, rows_a: list[dict], rows_b: list[dict], notes: list[str]) -> bool:
+    """With no model chosen: match rows model by model, or two single-model runs model against model."""
+    if {r["model"] for r in rows_a} & {r["model"] for r in rows_b}:
+        return True
+    if len(sa.models) == 1 and len(sb.models) == 1:
+        notes.append(f"no model in common: comparing {sa.models[0]} (A) with {sb.models[0]} (B)")
+        return False
+    raise ReportError(
+        f"no model in common ({', '.join(sa.models)} vs {', '.join(sb.models)}); choose with --model-a/--model-b"
+    )
+
+
+def _match(rows_a: list[dict], rows_b: list[dict], by_model: bool, notes: list[str]) -> _Matched:
+    def key(r: dict) -> tuple:
+        return (r["model"] if by_model else "", r["task"], r["condition"], r["episode_id"])
+
+    ia = {key(r): r for r in rows_a}
+    ib = {key(r): r for r in rows_b}
+    common = sorted(set(ia) & set(ib))
+    if not common:
+        raise ReportError("the two sides share no (task, condition, episode): nothing to compare")
+    only_a, only_b = len(set(ia) - set(ib)), len(set(ib) - set(ia))
+    if only_a or only_b:
+        notes.append(f"{only_a} row(s) only in A and {only_b} only in B are left out")
+    return _Matched(ia, ib, common)
+
+
+def _metrics_to_compare(metrics: Sequence[str] | None, row: dict, notes: list[str]) -> list[str]:
+    """The metrics asked for (default: COMPARE_METRICS), checked against a row of the scores."""
+    if metrics is None:  # the default set, less what these scores lack (out-of-sample needs 2+ episodes a task)
+        metrics = [m for m in COMPARE_METRICS if m in row or m in MEAN_ONLY_METRICS]
+        if lacking := [m for m in COMPARE_METRICS if m not in metrics]:
+            notes.append(f"not in these scores, left out: {', '.join(lacking)}")
+    unknown = [m for m in metrics if m not in row and m not in MEAN_ONLY_METRICS]
+    if unknown:
+        raise ReportError(f"unknown metric(s) {', '.join(unknown)}; see the columns of scores/rows.csv")
+    return list(metrics)
+
+
+def _layout(sa: RunScores, common: list[tuple], tasks: Sequence[str] | None) -> tuple[list, list, list]:
+    """The models, tasks ("all" too when there are several) and conditions of the comparison, in A's order."""
+    conds = [c for c in sa.conditions if any(k[2] == c for k in common)]
+    conds += sorted({k[2] for k in common} - set(conds))
+    models = sorted({k[0] for k in common}, key=lambda m: sa.models.index(m) if m in sa.models else 99)
+    present = [t for t in sa.tasks() if any(k[1] == t for k in common)]
+    task_list = [*present, "all"] if len(present) > 1 else present
+    if tasks:
+        task_list = [t for t in task_list if t in tasks]
+    return models, task_list, conds
+
+
+def _difference(matched: _Matched, keys: list[tuple], metric: str, n_boot: int, seed: int) -> dict:
+    from vlmproprio.stats import paired_difference
+
+    pairs = [(matched.a[k].get(metric), matched.b[k].get(metric)) for k in keys]
+    pairs = [(x, y) for x, y in pairs if _num(x) and _num(y)]
+    res = paired_difference([y for _, y in pairs], [x for x, _ in pairs], n_boot=n_boot, seed=seed)
+    return {
+        "n": res.n,
+        "a": res.mean_b,
+        "b": res.mean_a,
+        "diff": res.mean_diff,
+        "ci_low": res.ci_low,
+        "ci_high": res.ci_high,
+        "p_value": res.p_value,
+    }
+
+
 def compare_runs(
     run_a: str | Path,
     run_b: str | Path | None = None,
@@ -124,7 +197,7 @@ def compare_runs(
     """Differences B − A per (task, condition, metric). ``run_b`` None compares ``model_a`` with ``model_b``
     inside ``run_a``. With no model given and no model name in common, two single-model runs are compared
     model against model."""
-    from vlmproprio.stats import DEFAULT_N_BOOT, DEFAULT_SEED, paired_difference
+    from vlmproprio.stats import DEFAULT_N_BOOT, DEFAULT_SEED
 
     if run_b is None and (model_a is None or model_b is None):
         raise ReportError("comparing inside one run needs both --model-a and --model-b")
@@ -132,73 +205,25 @@ def compare_runs(
     sb = sa if run_b is None else load_run_scores(run_b)
     rows_a, rows_b = _pick(sa, model_a, "a"), _pick(sb, model_b, "b")
     notes = [] if sb is sa else _settings_notes(sa, sb)
-    by_model = model_a is None and model_b is None
-    if by_model and not ({r["model"] for r in rows_a} & {r["model"] for r in rows_b}):
-        if len(sa.models) == 1 and len(sb.models) == 1:
-            by_model = False
-            notes.append(f"no model in common: comparing {sa.models[0]} (A) with {sb.models[0]} (B)")
-        else:
-            raise ReportError(
-                f"no model in common ({', '.join(sa.models)} vs {', '.join(sb.models)}); choose with --model-a/--model-b"
-            )
-
-    def key(r: dict) -> tuple:
-        return (r["model"] if by_model else "", r["task"], r["condition"], r["episode_id"])
-
-    ia = {key(r): r for r in rows_a}
-    ib = {key(r): r for r in rows_b}
-    common = sorted(set(ia) & set(ib))
-    if not common:
-        raise ReportError("the two sides share no (task, condition, episode): nothing to compare")
-    only_a, only_b = len(set(ia) - set(ib)), len(set(ib) - set(ia))
-    if only_a or only_b:
-        notes.append(f"{only_a} row(s) only in A and {only_b} only in B are left out")
-    if metrics is None:  # the default set, less what these scores lack (out-of-sample needs 2+ episodes a task)
-        metrics = [m for m in COMPARE_METRICS if m in ia[common[0]] or m in MEAN_ONLY_METRICS]
-        if lacking := [m for m in COMPARE_METRICS if m not in metrics]:
-            notes.append(f"not in these scores, left out: {', '.join(lacking)}")
-    unknown = [m for m in metrics if m not in ia[common[0]] and m not in MEAN_ONLY_METRICS]
-    if unknown:
-        raise ReportError(f"unknown metric(s) {', '.join(unknown)}; see the columns of scores/rows.csv")
-
-    conds = [c for c in sa.conditions if any(k[2] == c for k in common)]
-    conds += sorted({k[2] for k in common} - set(conds))
-    models = sorted({k[0] for k in common}, key=lambda m: sa.models.index(m) if m in sa.models else 99)
-    present = [t for t in sa.tasks() if any(k[1] == t for k in common)]
-    task_list = [*present, "all"] if len(present) > 1 else present
-    if tasks:
-        task_list = [t for t in task_list if t in tasks]
-    out = []
+    by_model = model_a is None and model_b is None and _compare_by_model(sa, sb, rows_a, rows_b, notes)
+    matched = _match(rows_a, rows_b, by_model, notes)
+    metrics = _metrics_to_compare(metrics, matched.a[matched.common[0]], notes)
+    models, task_list, conds = _layout(sa, matched.common, tasks)
     nb = n_boot or DEFAULT_N_BOOT
     sd = DEFAULT_SEED if seed is None else seed
+    out = []
     for model in models:
         for task in task_list:
             for cond in conds:
-                keys = [k for k in common if k[0] == model and k[2] == cond and (task == "all" or k[1] == task)]
+                keys = [k for k in matched.common if k[0] == model and k[2] == cond and (task == "all" or k[1] == task)]
                 if not keys:
                     continue
                 for m in metrics:
                     if m in MEAN_ONLY_METRICS:
                         out.append(_mean_only(sa, sb, model_a, model_b, model, task, cond, m))
-                        continue
-                    pairs = [(ia[k].get(m), ib[k].get(m)) for k in keys]
-                    pairs = [(x, y) for x, y in pairs if _num(x) and _num(y)]
-                    res = paired_difference([y for _, y in pairs], [x for x, _ in pairs], n_boot=nb, seed=sd)
-                    out.append(
-                        {
-                            "model": model,
-                            "task": task,
-                            "condition": cond,
-                            "metric": m,
-                            "n": res.n,
-                            "a": res.mean_b,
-                            "b": res.mean_a,
-                            "diff": res.mean_diff,
-                            "ci_low": res.ci_low,
-                            "ci_high": res.ci_high,
-                            "p_value": res.p_value,
-                        }
-                    )
+                    else:
+                        cell = {"model": model, "task": task, "condition": cond, "metric": m}
+                        out.append(cell | _difference(matched, keys, m, nb, sd))
     la = f"{Path(run_a).name}" + (f" [{model_a}]" if model_a else "")
     lb = f"{Path(run_b if run_b is not None else run_a).name}" + (f" [{model_b}]" if model_b else "")
     return Comparison(la, lb, out, notes)

@@ -10,7 +10,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from vlmproprio.errors import VlmproprioError
-from vlmproprio.io import load_json
+from vlmproprio.io import load_required_json
+from vlmproprio.transcripts import cell_key
 
 SCORES_DIR = "scores"
 # the score files a report needs; sweep.json (per episode) is left out: the plots use the means
@@ -86,10 +87,9 @@ def scores_present(run_dir: str | Path) -> bool:
 
 
 def _read_json(path: Path, kind: type):
+    missing = f"{path}: missing; score the run first (`vlmproprio score {path.parent.parent}`)"
     try:
-        data = load_json(path, error=ReportError)
-    except FileNotFoundError:
-        raise ReportError(f"{path}: missing; score the run first (`vlmproprio score {path.parent.parent}`)") from None
+        data = load_required_json(path, missing, error=ReportError)
     except (OSError, ValueError) as exc:
         raise ReportError(
             f"{path}: cannot read ({exc}); re-score the run (`vlmproprio score {path.parent.parent}`)"
@@ -101,12 +101,7 @@ def _read_json(path: Path, kind: type):
     return data
 
 
-def load_run_scores(run_dir: str | Path) -> RunScores:
-    """Read RUN_DIR/run.json (optional) and RUN_DIR/scores/*.json; checks they describe the same transcripts."""
-    run_dir = Path(run_dir)
-    if not run_dir.is_dir():
-        raise ReportError(f"{run_dir}: run directory not found")
-    d = run_dir / SCORES_DIR
+def _check_generation(run_dir: Path, d: Path) -> None:
     if (d / "meta.json").is_file():  # else the missing-file error below says to score the run
         from vlmproprio.evaluation import StaleScoresError, check_scores
 
@@ -114,35 +109,43 @@ def load_run_scores(run_dir: str | Path) -> RunScores:
             check_scores(run_dir, [f"{name}.json" for name in SCORE_FILES])
         except StaleScoresError as exc:
             raise ReportError(str(exc)) from None
-    kinds = {"audit": dict, "traces": dict, "meta": dict, "verdicts": dict}
-    t = {name: _read_json(d / f"{name}.json", kinds.get(name, list)) for name in SCORE_FILES}
-    manifest = _read_json(run_dir / "run.json", dict) if (run_dir / "run.json").is_file() else {}
-    for i, r in enumerate(t["rows"]):
+
+
+def _check_rows(run_dir: Path, d: Path, rows: list) -> None:
+    """Every row names its cell, and the cells are exactly the run's transcripts."""
+    for i, r in enumerate(rows):
         if not isinstance(r, dict) or not all(k in r for k in ("model", "episode_id", "task", "condition")):
             raise ReportError(f"{d / 'rows.json'}: row {i} lacks model/episode_id/task/condition; re-score the run")
-    scored = {f"{r['model']}/{r['episode_id']}__{r['condition']}" for r in t["rows"]}
+    scored = {cell_key(r["model"], r["episode_id"], r["condition"]) for r in rows}
     on_disk = {f"{p.parent.name}/{p.stem}" for p in (run_dir / "transcripts").glob("*/*.json")}
     if on_disk and on_disk != scored:
         new, gone = sorted(on_disk - scored), sorted(scored - on_disk)
         what = f"{len(new)} transcript(s) not scored (e.g. {new[0]})" if new else f"{len(gone)} scored but gone"
         raise ReportError(f"{d}: scores are out of date: {what}; re-score with `vlmproprio score {run_dir}`")
-    meta = t["meta"]
-    models = [m for m in meta.get("models", []) if isinstance(m, str)] or sorted({r["model"] for r in t["rows"]})
+
+
+def load_run_scores(run_dir: str | Path) -> RunScores:
+    """Read RUN_DIR/run.json (optional) and RUN_DIR/scores/*.json; checks they describe the same transcripts."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise ReportError(f"{run_dir}: run directory not found")
+    d = run_dir / SCORES_DIR
+    _check_generation(run_dir, d)
+    kinds = {"audit": dict, "traces": dict, "meta": dict, "verdicts": dict}
+    # the score files are RunScores' fields of the same names
+    tables = {name: _read_json(d / f"{name}.json", kinds.get(name, list)) for name in SCORE_FILES}
+    manifest = _read_json(run_dir / "run.json", dict) if (run_dir / "run.json").is_file() else {}
+    rows, meta = tables["rows"], tables["meta"]
+    _check_rows(run_dir, d, rows)
+    models = [m for m in meta.get("models", []) if isinstance(m, str)] or sorted({r["model"] for r in rows})
     conditions = [c for c in meta.get("conditions", []) if isinstance(c, str)]
     episodes = [e for e in meta.get("episodes", []) if isinstance(e, str)]
     return RunScores(
         run_dir=run_dir,
         manifest=manifest,
-        rows=t["rows"],
-        aggregate=t["aggregate"],
-        sweep_aggregate=t["sweep_aggregate"],
-        paired=t["paired"],
-        audit=t["audit"],
-        traces=t["traces"],
-        meta=meta,
-        verdicts=t["verdicts"],
+        **tables,
         models=models,
-        conditions=conditions or list(dict.fromkeys(r["condition"] for r in t["rows"])),
-        episodes=episodes or list(dict.fromkeys(r["episode_id"] for r in t["rows"])),
+        conditions=conditions or list(dict.fromkeys(r["condition"] for r in rows)),
+        episodes=episodes or list(dict.fromkeys(r["episode_id"] for r in rows)),
         judge=_read_json(d / "judge.json", dict) if (d / "judge.json").is_file() else None,
     )

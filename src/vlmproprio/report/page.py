@@ -21,13 +21,13 @@ from vlmproprio.io import atomic_write_bytes
 from vlmproprio.report.data import TASK_LABELS, RunScores
 from vlmproprio.report.plots import Plot
 from vlmproprio.report.tables import Table, fmt_value
-from vlmproprio.transcripts import Transcript
+from vlmproprio.scoring import ITEMS
+from vlmproprio.transcripts import FrameCaption, Transcript, cell_key
 
 # atomic writes create private (0600) files; a report is meant to be shared (CI artifact, web server)
 THUMB_PX = 128
 THUMB_QUALITY = 80
 FRAMES_DIR = "frames"
-ITEMS = ("object", "action", "trajectory")
 ITEM_SYMBOL = {"correct": "✓", "wrong": "✗", "mentioned": "~", "absent": "–"}
 VERDICTS = ("correct", "wrong", "mentioned", "ignored")
 
@@ -270,58 +270,63 @@ def _row_metrics(row: dict | None, threshold: float) -> list[tuple[str, str]]:
     ]
 
 
-def episode_view(
-    s: RunScores,
-    model: str,
-    episode_id: str,
-    transcripts: dict[tuple[str, str, str], Transcript],
-    episode: Episode | None,
-    thumbs: dict[int, str],
-    descriptions: dict[str, str],
-) -> EpisodeView:
-    thr = s.threshold
+@dataclass
+class _EpisodeCells:
+    """What the scores hold on one episode of one model, per condition it was run under."""
+
+    rows: dict[str, dict]
+    conds: list[str]
+    audits: dict[str, dict]
+    traces: dict[str, dict]
+
+
+def _episode_cells(s: RunScores, model: str, episode_id: str) -> _EpisodeCells:
     rows = {r["condition"]: r for r in s.rows if r["model"] == model and r["episode_id"] == episode_id}
     conds = [c for c in s.conditions if c in rows]
-    task = next(iter(rows.values()))["task"] if rows else (episode.task if episode else "")
-    keyed = {c: f"{model}/{episode_id}__{c}" for c in conds}
+    keyed = {c: cell_key(model, episode_id, c) for c in conds}
     audits = {c: s.audit.get(keyed[c], {}) for c in conds}
     traces = {c: s.traces.get(keyed[c], {}) for c in conds}
+    return _EpisodeCells(rows, conds, audits, traces)
 
+
+def _condition_views(cells: _EpisodeCells, descriptions: dict[str, str], thr: float) -> list[ConditionView]:
     cviews = []
-    for c in conds:
-        fin = audits[c].get("final", {})
+    for c in cells.conds:
+        fin = cells.audits[c].get("final", {})
         cviews.append(
             ConditionView(
                 name=c,
                 description=descriptions.get(c, ""),
                 final=caption_view(fin.get("text"), fin.get("status", "absent"), fin.get("matches", [])),
                 badges=_badges(fin.get("items", {})),
-                metrics=_row_metrics(rows.get(c), thr),
-                spark=spark(traces[c], thr) if traces[c] else None,
+                metrics=_row_metrics(cells.rows.get(c), thr),
+                spark=spark(cells.traces[c], thr) if cells.traces[c] else None,
             )
         )
+    return cviews
 
+
+def _frame_cell(f: FrameCaption | None, tr: dict, i: int) -> FrameCell:
+    """Frame i of one condition: its caption (status as scored), whether a boundary precedes it, and the
+    similarity to the frame before."""
+    status = (tr.get("frame_status") or [])[i] if i < len(tr.get("frame_status") or []) else None
+    cap = caption_view(f.text, f.status if status is None else status) if f else caption_view(None, "absent")
+    sims = tr.get("trace") or []
+    sim = sims[i - 1] if 0 < i <= len(sims) else None
+    return FrameCell(cap, (i - 1) in tr.get("predicted_boundaries", []), "" if sim is None else f"{sim:.2f}")
+
+
+def _frame_rows(
+    cells: _EpisodeCells, captions: dict[str, dict[int, FrameCaption]], episode: Episode | None, thumbs: dict[int, str]
+) -> list[FrameRow]:
+    """One row per frame; ``captions[condition]`` maps frame index to the transcript's frame caption."""
     # frames: ground truth from the episode when the fixtures are at hand, else from the trace
+    conds, traces = cells.conds, cells.traces
     any_trace = next((traces[c] for c in conds if traces[c]), {})
     phases = list(episode.frame_phases) if episode else list(any_trace.get("true_phases", []))
     n_frames = len(phases) or max((len(traces[c].get("trace", [])) + 1 for c in conds), default=0)
-    frames_by_cond = {}
-    for c in conds:
-        t = transcripts.get((model, episode_id, c))
-        frames_by_cond[c] = {f.frame_index: f for f in t.frames} if t else {}
     frame_rows = []
     for i in range(n_frames):
-        cells = []
-        for c in conds:
-            f = frames_by_cond[c].get(i)
-            tr = traces[c]
-            status = (tr.get("frame_status") or [])[i] if i < len(tr.get("frame_status") or []) else None
-            cap = caption_view(f.text, f.status if status is None else status) if f else caption_view(None, "absent")
-            sims = tr.get("trace") or []
-            sim = sims[i - 1] if 0 < i <= len(sims) else None
-            cells.append(
-                FrameCell(cap, (i - 1) in tr.get("predicted_boundaries", []), "" if sim is None else f"{sim:.2f}")
-            )
         fr = episode.frames[i] if episode and i < len(episode.frames) else None
         frame_rows.append(
             FrameRow(
@@ -331,13 +336,16 @@ def episode_view(
                 phase=phases[i] if i < len(phases) else "",
                 direction=fr.direction if fr else "",
                 new_phase=0 < i < len(phases) and phases[i] != phases[i - 1],
-                cells=cells,
+                cells=[_frame_cell(captions[c].get(i), traces[c], i) for c in conds],
             )
         )
+    return frame_rows
 
+
+def _scene_rows(cells: _EpisodeCells) -> list[SceneRow]:
     groups: dict[int, dict] = {}
-    for c in conds:
-        for sc in audits[c].get("scenes", []):
+    for c in cells.conds:
+        for sc in cells.audits[c].get("scenes", []):
             groups.setdefault(sc.get("group", 0), {})[c] = sc
     scene_rows = []
     for g in sorted(groups):
@@ -351,11 +359,29 @@ def episode_view(
                     caption_view(sc.get("text"), sc.get("status", "absent"), sc.get("matches", []))
                     if (sc := groups[g].get(c))
                     else caption_view(None, "absent")
-                    for c in conds
+                    for c in cells.conds
                 ],
             )
         )
-    exp = next((audits[c].get("expectation") for c in conds if audits[c].get("expectation")), {})
+    return scene_rows
+
+
+def episode_view(
+    s: RunScores,
+    model: str,
+    episode_id: str,
+    transcripts: dict[tuple[str, str, str], Transcript],
+    episode: Episode | None,
+    thumbs: dict[int, str],
+    descriptions: dict[str, str],
+) -> EpisodeView:
+    cells = _episode_cells(s, model, episode_id)
+    task = next(iter(cells.rows.values()))["task"] if cells.rows else (episode.task if episode else "")
+    captions = {}
+    for c in cells.conds:
+        t = transcripts.get((model, episode_id, c))
+        captions[c] = {f.frame_index: f for f in t.frames} if t else {}
+    exp = next((cells.audits[c].get("expectation") for c in cells.conds if cells.audits[c].get("expectation")), {})
     return EpisodeView(
         model=model,
         episode_id=episode_id,
@@ -363,9 +389,9 @@ def episode_view(
         anchor=f"ep-{model}-{episode_id}",
         instruction=episode.instruction if episode else "",
         expectation=expectation_text(exp) if exp else "",
-        conditions=cviews,
-        frames=frame_rows,
-        scenes=scene_rows,
+        conditions=_condition_views(cells, descriptions, s.threshold),
+        frames=_frame_rows(cells, captions, episode, thumbs),
+        scenes=_scene_rows(cells),
     )
 
 

@@ -20,8 +20,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vlmproprio.report.data import TASK_LABELS, RunScores
+from vlmproprio.scoring import ITEMS
+from vlmproprio.transcripts import cell_key
 
-ITEMS = ("object", "action", "trajectory")
 DPI = 110
 # one colour per condition in every figure; controls also get a hatch (bars) and a dashed line
 CONDITION_STYLE = {
@@ -172,7 +173,7 @@ def trace_figure(s: RunScores, model: str, episode_id: str, conditions: Sequence
     fig = _figure(11, 2.9 * len(conditions) + 0.6)
     axes = fig.subplots(len(conditions), 1, sharex=True, squeeze=False)[:, 0]
     for ax, c in zip(axes, conditions, strict=True):
-        tr = s.traces.get(f"{model}/{episode_id}__{c}")
+        tr = s.traces.get(cell_key(model, episode_id, c))
         if tr is None:
             ax.text(0.5, 0.5, f"no trace for {c}", ha="center", va="center", transform=ax.transAxes)
             continue

@@ -10,9 +10,10 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
+from vlmproprio.conditions import BASELINE
+from vlmproprio.evaluation.definitions import FINAL_TOTALS
 from vlmproprio.report.data import TASK_LABELS, RunScores
-
-BASELINE = "none"
+from vlmproprio.scoring import ITEMS
 
 LABELS = {
     "n_episodes": "n",
@@ -50,15 +51,8 @@ LABELS = {
 RATE_SUFFIXES = ("_mentioned", "_correct", "_wrong", "_missing")
 CAPTION_COLUMNS = (
     "n_episodes",
-    "final_object_mentioned",
-    "final_object_correct",
-    "final_action_mentioned",
-    "final_action_correct",
-    "final_trajectory_mentioned",
-    "final_trajectory_correct",
-    "final_all_correct",
-    "final_words",
-    "final_hits_per_word",
+    *(f"final_{item}_{what}" for item in ITEMS for what in ("mentioned", "correct")),
+    *FINAL_TOTALS,
 )
 SEGMENTATION_COLUMNS = (
     "seg_gt_boundaries",

@@ -1,0 +1,198 @@
+"""Score each (model, episode, condition) cell: the rubric on its final and scene captions, segmentation of its
+frame captions at the fixed threshold and over the sweep, its audit and its similarity trace."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+
+from vlmproprio.episodes import Episode
+from vlmproprio.evaluation.captions import Cell, EmbeddedCaptions
+from vlmproprio.evaluation.inputs import RunInputs
+from vlmproprio.scoring import ITEMS, CaptionScore, Expectation, Lexicon, expectation_for, load_lexicon, score_text
+from vlmproprio.segmentation import SweepPoint, boundaries_at, cosine_trace, sweep
+from vlmproprio.transcripts import Transcript, cell_key
+from vlmproprio.verdicts import ModelOutputs
+
+
+def _flag(b: bool) -> int:
+    return 1 if b else 0
+
+
+def _caption_columns(prefix: str, s: CaptionScore) -> dict:
+    d = {}
+    for item in ITEMS:
+        it = s.item(item)
+        d[f"{prefix}_{item}_mentioned"] = _flag(it.mentioned)
+        d[f"{prefix}_{item}_correct"] = _flag(it.correct)
+        d[f"{prefix}_{item}_wrong"] = _flag(it.wrong)
+    d[f"{prefix}_all_correct"] = _flag(s.all_correct)
+    return d
+
+
+def _scene_columns(scores: list[CaptionScore]) -> dict:
+    """Fractions of the scene captions that mention / get right each item (None without scene captions)."""
+    d: dict = {}
+    n = len(scores)
+    for item in ITEMS:
+        for what in ("mentioned", "correct", "wrong"):
+            k = sum(1 for s in scores if getattr(s.item(item), what))
+            d[f"scene_{item}_{what}"] = k / n if n else None
+    d["scene_all_correct"] = sum(1 for s in scores if s.all_correct) / n if n else None
+    d["scene_words"] = math.fsum(s.words for s in scores) / n if n else None
+    return d
+
+
+def _caption_audit(text: str, status: str, s: CaptionScore) -> dict:
+    return {
+        "text": text,
+        "status": status,
+        "words": s.words,
+        "hits": s.hits,
+        "items": {item: vars(s.item(item)).copy() for item in ITEMS} | {"all_correct": s.all_correct},
+        "matches": [h.to_dict() for h in s.matches],
+    }
+
+
+def _finite_or_none(x: float) -> float | None:
+    return None if x is None or (isinstance(x, float) and not math.isfinite(x)) else x
+
+
+def _trace_stats(trace: np.ndarray) -> dict:
+    fin = [float(x) for x in trace.tolist() if math.isfinite(x)]
+    return {
+        "sim_mean": _finite_or_none(math.fsum(fin) / len(fin)) if fin else None,
+        "sim_min": min(fin) if fin else None,
+    }
+
+
+class FinalCaption(NamedTuple):
+    """A cell's final caption as the judge grades it (evaluation.judge.judge_table)."""
+
+    key: str  # transcripts.cell_key
+    score: CaptionScore
+    text: str
+    episode: Episode
+    condition: str
+
+
+@dataclass
+class CellScores:
+    """Every cell's row, sweep and trace, the audit of its captions, and what the sanity checks and the judge
+    read, in the transcripts' order."""
+
+    rows: list[dict] = field(default_factory=list)
+    sweep_rows: list[dict] = field(default_factory=list)
+    cell_sweeps: dict[Cell, list[dict]] = field(default_factory=dict)  # the sweep of each cell (out-of-sample)
+    audit: dict[str, dict] = field(default_factory=dict)
+    traces: dict[str, dict] = field(default_factory=dict)
+    outputs: dict[str, ModelOutputs] = field(default_factory=dict)
+    lexicons: dict[str, Lexicon] = field(default_factory=dict)
+    finals: list[FinalCaption] = field(default_factory=list)
+
+
+@dataclass
+class _Captions:
+    """One cell's captions as scored: a missing final or scene caption is an empty text."""
+
+    final_text: str
+    final: CaptionScore
+    scene_texts: list[str]
+    scenes: list[CaptionScore]
+
+
+def _score_captions(t: Transcript, exp: Expectation, lex: Lexicon) -> _Captions:
+    final_text = t.final if t.final_status != "missing" else ""
+    scene_texts = [(s.text if s.status != "missing" else "") for s in t.scenes]
+    return _Captions(
+        final_text, score_text(final_text, exp, lex), scene_texts, [score_text(x, exp, lex) for x in scene_texts]
+    )
+
+
+def _row(
+    t: Transcript, ep: Episode, c: _Captions, statuses: list[str], at: SweepPoint, trace: np.ndarray, threshold: float
+) -> dict:
+    return {
+        "model": t.model,
+        "episode_id": t.episode_id,
+        "task": ep.task,
+        "condition": t.condition,
+        "n_frames": len(ep.frames),
+        "frames_missing": statuses.count("missing"),
+        "frames_recovered": statuses.count("recovered"),
+        "n_scenes": len(t.scenes),
+        "scenes_missing": sum(1 for s in t.scenes if s.status == "missing"),
+        "final_missing": _flag(t.final_status == "missing"),
+        "final_words": c.final.words,
+        "final_hits": c.final.hits,
+        "final_hits_per_word": c.final.hits_per_word,
+        **_caption_columns("final", c.final),
+        **_scene_columns(c.scenes),
+        "seg_threshold": threshold,
+        "seg_gt_boundaries": len(ep.boundaries()),
+        **{f"seg_{k}": v for k, v in at.flat().items() if k != "threshold"},
+        **_trace_stats(trace),
+    }
+
+
+def _add_outputs(o: ModelOutputs, ep: Episode, texts: list[str], statuses: list[str], c: _Captions) -> None:
+    o.frames_missing += statuses.count("missing")
+    present = [x for x, st in zip(texts, statuses, strict=True) if st != "missing"]
+    o.frame_captions.extend(present)
+    o.cell_distinct.append(len(set(present)) / len(ep.frames))
+    o.all_captions.extend([*present, *c.scene_texts, c.final_text])
+    o.final_hits.append(c.final.hits)
+
+
+def _audit(t: Transcript, exp: Expectation, c: _Captions) -> dict:
+    return {
+        "expectation": exp.to_dict(),
+        "final": _caption_audit(t.final, t.final_status, c.final),
+        "scenes": [
+            {"group": s.group, "frame_indices": list(s.frame_indices), **_caption_audit(s.text, s.status, sc)}
+            for s, sc in zip(t.scenes, c.scenes, strict=True)
+        ],
+    }
+
+
+def _trace(trace: np.ndarray, statuses: list[str], ep: Episode, threshold: float) -> dict:
+    return {
+        "trace": [_finite_or_none(float(x)) for x in trace.tolist()],
+        "frame_status": statuses,
+        "predicted_boundaries": boundaries_at(trace, threshold),
+        "true_boundaries": ep.boundaries(),
+        "true_phases": ep.frame_phases,
+    }
+
+
+def score_cells(
+    inputs: RunInputs, captions: EmbeddedCaptions, thresholds: Sequence[float], threshold: float
+) -> CellScores:
+    """Score every transcript of the run (the rubric, the trace, the sweep and the fixed threshold)."""
+    out = CellScores()
+    for t in inputs.transcripts:
+        ep = inputs.episodes[t.episode_id]
+        cell = (t.model, t.episode_id, t.condition)
+        key = cell_key(*cell)
+        lex = out.lexicons.setdefault(ep.task, load_lexicon(ep.task))
+        exp = expectation_for(ep, lex)
+        c = _score_captions(t, exp, lex)
+        out.finals.append(FinalCaption(key, c.final, c.final_text, ep, t.condition))
+        texts, statuses = captions.frames[cell]
+        vectors = captions.vectors
+        trace = cosine_trace([vectors[x] if s != "missing" else None for x, s in zip(texts, statuses, strict=True)])
+        points = sweep(trace, ep.frame_phases, (*thresholds, threshold))
+        out.cell_sweeps[cell] = [sp.flat() for sp in points[:-1]]
+        out.rows.append(_row(t, ep, c, statuses, points[-1], trace, threshold))
+        for sp in out.cell_sweeps[cell]:
+            out.sweep_rows.append(
+                {"model": t.model, "episode_id": t.episode_id, "task": ep.task, "condition": t.condition} | sp
+            )
+        _add_outputs(out.outputs.setdefault(t.model, ModelOutputs()), ep, texts, statuses, c)
+        out.audit[key] = _audit(t, exp, c)
+        out.traces[key] = _trace(trace, statuses, ep, threshold)
+    return out

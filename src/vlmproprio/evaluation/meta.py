@@ -1,0 +1,87 @@
+"""scores/meta.json: what a score was computed with (encoder, lexicons, segmentation and statistics settings) and
+how each of its numbers is defined, so the scores can be read without the code."""
+
+from __future__ import annotations
+
+from vlmproprio.evaluation.captions import EmbeddedCaptions
+from vlmproprio.evaluation.chance import Baselines
+from vlmproprio.evaluation.definitions import PAIRED_METRICS, SCORES_VERSION, ScoreSettings
+from vlmproprio.evaluation.inputs import RunInputs
+from vlmproprio.evaluation.out_of_sample import LOO_RULE
+from vlmproprio.evaluation.statistics import Statistics
+from vlmproprio.scoring import Lexicon
+from vlmproprio.segmentation import CHANCE_DRAWS, CHANCE_METRICS, CHANCE_SEED, IOU_THRESHOLDS, TOLERANCES
+
+MISSING_POLICY = (
+    "A frame caption with status 'missing', an empty text, or no entry in the transcript is a gap: the trace "
+    "keeps its place and every pair touching it is NaN, which never makes a boundary. A missing final or scene "
+    "caption scores as an empty text (nothing mentioned, zero words). 'recovered' captions are used as they are."
+)
+
+
+def _encoder(captions: EmbeddedCaptions) -> dict:
+    # path and threads are left out: neither changes a vector, and a path differs between machines
+    vectors = captions.vectors
+    return {k: v for k, v in captions.encoder.items() if k not in ("path", "threads")} | {
+        "dim": int(next(iter(vectors.values())).shape[0]) if vectors else None
+    }
+
+
+def _segmentation(settings: ScoreSettings, baselines: Baselines) -> dict:
+    group_size = baselines.group_size
+    return {
+        "default_threshold": settings.threshold,
+        "thresholds": list(settings.thresholds),
+        "tolerances": list(TOLERANCES),
+        "iou_thresholds": list(IOU_THRESHOLDS),
+        "out_of_sample": LOO_RULE,
+        "chance": {
+            "metrics": list(CHANCE_METRICS),
+            "random": "same number of points at uniformly random positions: exact when at most "
+            f"{CHANCE_DRAWS} sets are possible, else the mean of {CHANCE_DRAWS} draws (seed {CHANCE_SEED})",
+            "even": "the same number of points evenly spaced",
+            "groups": f"points at the edges of the pipeline's frame groups (k = {group_size})",
+            "lift": "score - random chance",
+            "group_size": group_size,
+            "exact_share": baselines.exact_share,
+        },
+        "boundary": "segmentation point j where cos(caption j, caption j+1) < threshold",
+        "missing_frames": MISSING_POLICY,
+    }
+
+
+def _stats(settings: ScoreSettings, stats: Statistics) -> dict:
+    return {
+        "comparisons": [list(c) for c in stats.comparisons],
+        "metrics": list(PAIRED_METRICS),
+        "n_boot": settings.n_boot,
+        "n_perm": settings.n_perm,
+        "seed": settings.seed,
+        "ci": "percentile bootstrap 95%",
+        "p_value": "two-sided sign-flip permutation (exact up to 16 pairs)",
+        "multiplicity": "primary hypotheses (scores/verdicts.json): Holm per model; every other paired test: "
+        "exploratory, Benjamini-Hochberg q-value per model",
+    }
+
+
+def score_meta(
+    inputs: RunInputs,
+    captions: EmbeddedCaptions,
+    lexicons: dict[str, Lexicon],
+    baselines: Baselines,
+    controls: dict,
+    stats: Statistics,
+    settings: ScoreSettings,
+) -> dict:
+    return {
+        "scores_version": SCORES_VERSION,
+        "models": inputs.models,
+        "conditions": inputs.conditions,
+        "episodes": sorted(inputs.episode_ids, key=lambda e: inputs.episode_order[e]),
+        "n_transcripts": len(inputs.transcripts),
+        "encoder": _encoder(captions),
+        "lexicons": {task: {"version": lx.version, "sha256": lx.sha256} for task, lx in sorted(lexicons.items())},
+        "segmentation": _segmentation(settings, baselines),
+        "controls": controls,
+        "stats": _stats(settings, stats),
+    }
