@@ -1,17 +1,22 @@
-"""Regenerability: re-recording an episode reproduces the frozen fixture exactly.
+"""Regenerability: re-recording an episode reproduces the frozen fixture.
 
-episode.json holds every sampled frame's pixel hash, state and ground truth, so equal episode.json and
-steps.npz bytes mean equal pixels, states and phases (PNG bytes may differ across PNG encoder versions and
-are therefore compared through their decoded pixels).
+episode.json holds every sampled frame's pixel hash, state and ground truth. Pixels, ground truth and every
+non-float field must be equal exactly (PNG bytes may differ across PNG encoder versions and are therefore
+compared through their decoded pixels). The simulated states may differ in their last bits on a CPU with other
+vector instructions than the recording machine's (AVX2 vs AVX-512 change MuJoCo's and numpy's float order):
+they are compared to 1e-9 relative, far below anything a caption or a phase boundary can see.
 """
 
 from __future__ import annotations
 
+import json
+import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
-from vlmproprio.episodes import load_episode, sha256_file
+from vlmproprio.episodes import load_episode
 
 pytest.importorskip(
     "robosuite",
@@ -32,6 +37,36 @@ def test_rerecording_reproduces_the_fixture(tmp_path: Path, episode_id: str) -> 
     record_episode(episode_spec(episode_id), tmp_path)
     fresh = load_episode(tmp_path, episode_id, verify=False)
     assert [f.image_sha256 for f in fresh.frames] == [f.image_sha256 for f in frozen.frames]
-    assert [f.joints + f.ee for f in fresh.frames] == [f.joints + f.ee for f in frozen.frames]
-    for name in ("episode.json", "steps.npz"):
-        assert sha256_file(fresh.root / name) == sha256_file(frozen.root / name), name
+    _assert_close(
+        json.loads((fresh.root / "episode.json").read_text()),
+        json.loads((frozen.root / "episode.json").read_text()),
+        "episode.json",
+    )
+    with np.load(fresh.root / "steps.npz") as a, np.load(frozen.root / "steps.npz") as b:
+        assert sorted(a.files) == sorted(b.files)
+        for name in a.files:
+            x, y = a[name], b[name]
+            assert x.dtype == y.dtype and x.shape == y.shape, name
+            if np.issubdtype(x.dtype, np.floating):
+                np.testing.assert_allclose(x, y, rtol=RTOL, atol=ATOL, err_msg=f"steps.npz:{name}")
+            else:
+                np.testing.assert_array_equal(x, y, err_msg=f"steps.npz:{name}")
+
+
+RTOL, ATOL = 1e-9, 1e-12
+
+
+def _assert_close(fresh: object, frozen: object, where: str) -> None:
+    """Equal JSON values, floats to RTOL (see the module docstring); ``where`` names the first difference."""
+    if isinstance(frozen, float) and isinstance(fresh, int | float):
+        assert math.isclose(fresh, frozen, rel_tol=RTOL, abs_tol=ATOL), (where, fresh, frozen)
+    elif isinstance(frozen, dict):
+        assert isinstance(fresh, dict) and sorted(fresh) == sorted(frozen), where
+        for k in frozen:
+            _assert_close(fresh[k], frozen[k], f"{where}.{k}")
+    elif isinstance(frozen, list):
+        assert isinstance(fresh, list) and len(fresh) == len(frozen), where
+        for i, (x, y) in enumerate(zip(fresh, frozen, strict=True)):
+            _assert_close(x, y, f"{where}[{i}]")
+    else:
+        assert fresh == frozen, (where, fresh, frozen)

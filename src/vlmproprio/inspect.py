@@ -233,16 +233,34 @@ def paper_processes(fixtures: str = DEFAULT_FIXTURES, **pipeline: Any):
 # ---------------------------------------------------------------------------------------------- scorers
 
 
+def _fixture_sidecars(fixtures: str) -> list[Path]:
+    """Every caption-embedding sidecar beside the fixtures' cassettes. A vector is keyed by encoder and text, so
+    any model's sidecar serves any transcript: a caption the suite scored from a sidecar gets the very same bits
+    here, whichever machine (and float order) this runs on."""
+    from vlmproprio.embeddings import SIDECAR_SUFFIX
+
+    return sorted((Path(fixtures) / "responses").glob("*" + SIDECAR_SUFFIX))
+
+
 @functools.cache
-def _embedder(embedding_cache: str | None):
+def _embedder(embedding_cache: str | None, fixtures: str):
     """One sentence encoder per process. score_run opens its own embedder, which would load the encoder again
     for every sample; embedding a transcript's captions here first leaves it only cached vectors to read, and a
     text's vector does not depend on what is embedded with it (vlmproprio.embeddings), so the scores are the same."""
-    from vlmproprio.embeddings import CachedEmbedder, EmbeddingStore, default_embedding_dir, encoder_spec
+    from vlmproprio.embeddings import (
+        CachedEmbedder,
+        EmbeddingStore,
+        default_embedding_dir,
+        encoder_spec,
+        read_sidecar,
+        sidecar_vectors,
+    )
 
     store = EmbeddingStore(Path(embedding_cache) if embedding_cache else default_embedding_dir())
     atexit.register(store.close)
-    return CachedEmbedder(encoder_spec(), store)
+    spec = encoder_spec()
+    stored = sidecar_vectors([read_sidecar(p) for p in _fixture_sidecars(fixtures)], spec.key)
+    return CachedEmbedder(spec, store, sidecar=stored)
 
 
 @functools.cache
@@ -250,7 +268,7 @@ def _suite_row_cached(transcript_json: str, fixtures: str, threshold: float, emb
     transcript = Transcript.from_dict(json.loads(transcript_json))
     # a run folder names models by folder; inspect's names have slashes ("openai/gpt-4o"), and no score uses it
     transcript.model = RUN_MODEL
-    _embedder(embedding_cache).embed([f.text for f in transcript.frames if caption_present(f.text, f.status)])
+    _embedder(embedding_cache, fixtures).embed([f.text for f in transcript.frames if caption_present(f.text, f.status)])
     with tempfile.TemporaryDirectory(prefix="vlmproprio-inspect-") as tmp:
         run_dir = Path(tmp)
         write_transcript(run_dir, transcript)
@@ -258,6 +276,7 @@ def _suite_row_cached(transcript_json: str, fixtures: str, threshold: float, emb
             run_dir,
             fixtures=fixtures,
             embedding_cache=embedding_cache,
+            sidecars=_fixture_sidecars(fixtures),
             threshold=threshold,
             comparisons=[],
             write=False,

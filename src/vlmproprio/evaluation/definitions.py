@@ -1,7 +1,7 @@
 """The names scoring shares with its readers: the scores' version, the metrics compared, the settings of a score.
 
 The metric lists are defined once here: the paired statistics use PAIRED_METRICS, and the report and
-``vlmproprio compare`` build theirs from CAPTION_METRICS and FINAL_TOTALS, so the three cannot drift apart.
+the compare command build theirs from CAPTION_METRICS and FINAL_TOTALS, so the three cannot drift apart.
 """
 
 from __future__ import annotations
