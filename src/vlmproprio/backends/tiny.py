@@ -162,6 +162,22 @@ def _generation_config():
     return GenerationConfig(do_sample=False, eos_token_id=[2, 0], pad_token_id=0, bos_token_id=0)
 
 
+# The vision towers of the tiny Qwen families (merger output 64 = the text hidden size), and what they share.
+_QWEN_VISION = {
+    "qwen2-vl": dict(depth=2, embed_dim=32, num_heads=4, mlp_ratio=2, hidden_size=64, in_channels=3),
+    "qwen2.5-vl": dict(
+        depth=2,
+        hidden_size=32,
+        intermediate_size=64,
+        num_heads=4,
+        out_hidden_size=64,
+        fullatt_block_indexes=[1],
+        window_size=112,
+    ),
+}
+_QWEN_PATCHES = dict(patch_size=14, spatial_merge_size=2, temporal_patch_size=2)
+
+
 def _save_qwen(out: Path, family: str, seed: int) -> None:
     import torch
     from transformers import (
@@ -175,44 +191,19 @@ def _save_qwen(out: Path, family: str, seed: int) -> None:
     tok = build_tokenizer(seed)
     tok.chat_template = QWEN_CHAT_TEMPLATE
     mrope = {"rope_type": "default", "rope_theta": 1_000_000.0, "mrope_section": [2, 3, 3]}  # sums to head_dim/2
-    common = dict(image_token_id=5, video_token_id=6, vision_start_token_id=3, vision_end_token_id=4)
-    if family == "qwen2-vl":
-        config = Qwen2VLConfig(
-            text_config=_text_config(len(tok), rope_parameters=mrope),
-            vision_config=dict(
-                depth=2,
-                embed_dim=32,
-                num_heads=4,
-                mlp_ratio=2,
-                hidden_size=64,  # merger output = text hidden size
-                patch_size=14,
-                spatial_merge_size=2,
-                temporal_patch_size=2,
-                in_channels=3,
-            ),
-            tie_word_embeddings=False,
-            **common,
-        )
-        model_cls = Qwen2VLForConditionalGeneration
-    else:
-        config = Qwen2_5_VLConfig(
-            text_config=_text_config(len(tok), rope_parameters=mrope),
-            vision_config=dict(
-                depth=2,
-                hidden_size=32,
-                intermediate_size=64,
-                num_heads=4,
-                out_hidden_size=64,
-                fullatt_block_indexes=[1],
-                window_size=112,
-                patch_size=14,
-                spatial_merge_size=2,
-                temporal_patch_size=2,
-            ),
-            tie_word_embeddings=False,
-            **common,
-        )
-        model_cls = Qwen2_5_VLForConditionalGeneration
+    config_cls, model_cls = {
+        "qwen2-vl": (Qwen2VLConfig, Qwen2VLForConditionalGeneration),
+        "qwen2.5-vl": (Qwen2_5_VLConfig, Qwen2_5_VLForConditionalGeneration),
+    }[family]
+    config = config_cls(
+        text_config=_text_config(len(tok), rope_parameters=mrope),
+        vision_config={**_QWEN_VISION[family], **_QWEN_PATCHES},
+        tie_word_embeddings=False,
+        image_token_id=5,
+        video_token_id=6,
+        vision_start_token_id=3,
+        vision_end_token_id=4,
+    )
     torch.manual_seed(seed)
     model = model_cls(config).eval()
     model.generation_config = _generation_config()
