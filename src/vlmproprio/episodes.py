@@ -453,12 +453,13 @@ def _parse_episode(episode_dir: Path, data: dict) -> Episode:
         if data["task"] not in TASKS:
             raise EpisodeError(f"{where}: unknown task {data['task']!r} (known: {', '.join(TASKS)})")
         frames = []
+        inside = episode_dir.resolve()  # once per episode, not per frame
         for i, row in enumerate(data["frames"]):
             fw = f"{where}: frames[{i}]"
             if row["index"] != i:
                 raise EpisodeError(f"{fw}: index {row['index']} out of order")
             img = episode_dir / row["file"]
-            if episode_dir.resolve() not in img.resolve().parents:
+            if inside not in img.resolve().parents:
                 raise EpisodeError(f"{fw}: image path {row['file']!r} leaves the episode folder")
             frames.append(
                 Frame(
