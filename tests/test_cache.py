@@ -504,3 +504,32 @@ def test_export_refuses_mixed_identities(tmp_path):
             export_cassette(cache, "echo", tmp_path / "x.jsonl")
         model, n = import_cassette(cache, _recorded(tmp_path, 2)[0])
         assert (model, n) == ("echo", 2)
+
+
+def test_explicit_to_dicts_equal_dataclasses_asdict():
+    # the hot paths build these dicts by hand; they must stay what dataclasses.asdict gave (cache keys, entries)
+    from dataclasses import asdict
+
+    meta = AnswerMeta("hf", "m", "r", "bf16", "cpu", "sdpa", 3, 4, 0.5, {"a": [1, {"b": (2, 3)}], "c": None})
+    for obj in (meta, GenerationConfig(max_new_tokens=7, seed=None, min_new_tokens=2), RequestTag("e", "c", "p2", 3)):
+        assert obj.to_dict() == asdict(obj) and list(obj.to_dict()) == list(asdict(obj))
+    copied = meta.to_dict()["extra"]
+    assert copied is not meta.extra and copied["a"] is not meta.extra["a"] and copied["a"][1] is not meta.extra["a"][1]
+
+
+def test_replay_answers_by_the_answerers_keys_and_still_names_a_miss(tmp_path, monkeypatch):
+    requests = [req(f"# Process 1\nq{i}") for i in range(3)]
+    entries = [
+        CacheEntry(request_key(IDENTITY, r), f"a{i}", {"backend": "fake", "model_id": "echo"}, {})
+        for i, r in enumerate(requests)
+    ]
+    path = write_cassette(tmp_path / "echo.jsonl", "echo", IDENTITY, entries[:2])
+    backend = ReplayBackend(path)
+    hashed = []
+    monkeypatch.setattr("vlmproprio.backends.replay.request_key", lambda *a: hashed.append(a) or request_key(*a))
+    answers = Answerer(backend, mode="replay").answer(requests[:2])
+    assert [a.text for a in answers] == ["a0", "a1"] and [a.key for a in answers] == [e.key for e in entries[:2]]
+    assert hashed == []  # the Answerer's keys were used, not computed again
+    assert [a.text for a in backend.generate(requests[:2])] == ["a0", "a1"]  # plain generate hashes itself
+    with pytest.raises(ReplayMissError, match=entries[2].key):
+        Answerer(backend, mode="replay").answer(requests)

@@ -19,7 +19,7 @@ from vlmproprio.io import (
     loads_json,
     writing,
 )
-from vlmproprio.secrets import register_secret_env, scrub, scrub_obj
+from vlmproprio.secrets import register_secret_env, scrub, scrub_obj, secret_values
 
 
 @pytest.mark.parametrize(
@@ -51,6 +51,25 @@ def test_environment_keys_are_masked_and_clean_text_is_untouched(monkeypatch):
     clean = "The robot opens the door; F1 0.75 at threshold 0.65 (key frame 3)."
     assert scrub(clean) is clean or scrub(clean) == clean
     assert scrub_obj({"a": [text, 1.5, None]})["a"][0] == out
+
+
+def test_the_secret_set_follows_the_environment_between_calls(monkeypatch):
+    # the secrets are computed once and reused: a variable set, changed or removed after a scrub must count
+    text = "echo: late-token-value-77 and changed-token-value-88"
+    monkeypatch.delenv("LATE_SERVICE_TOKEN", raising=False)
+    assert scrub(text) == text and "late-token-value-77" not in secret_values()
+    monkeypatch.setenv("LATE_SERVICE_TOKEN", "late-token-value-77")
+    assert "late-token-value-77" not in scrub(text) and "late-token-value-77" in secret_values()
+    assert "late-token-value-77" not in scrub_obj({"k": [text]})["k"][0]
+    monkeypatch.setenv("LATE_SERVICE_TOKEN", "changed-token-value-88")
+    out = scrub(text)
+    assert "late-token-value-77" in out and "changed-token-value-88" not in out
+    monkeypatch.delenv("LATE_SERVICE_TOKEN")
+    assert scrub(text) == text
+    monkeypatch.setenv("LATE_PLAIN_NAME", "registered-later-99")
+    assert "registered-later-99" in scrub("x registered-later-99")
+    register_secret_env("LATE_PLAIN_NAME")  # a name registered after a scrub counts from then on
+    assert "registered-later-99" not in scrub("x registered-later-99")
 
 
 def test_deep_json_is_one_line_naming_the_file(tmp_path):

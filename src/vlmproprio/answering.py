@@ -132,7 +132,7 @@ class Answerer:
             batch_requests = [requests[i] for _, i in batch]
             self.stats["misses"] += len(batch)
             try:
-                answers = self.backend.generate(batch_requests)
+                answers = self.backend.generate_keyed(batch_requests, [key for key, _ in batch])
             except VlmproprioError as exc:  # BackendError and kin
                 # keep whatever the backend finished before it gave up (a dead server mid-batch)
                 for (key, i), ans in zip(batch, getattr(exc, "partial", ()) or (), strict=False):
@@ -151,10 +151,12 @@ class Answerer:
         text = scrub(answer.text)
         if text != answer.text:
             answer = replace(answer, text=text)
-        entry = scrubbed_entry(CacheEntry.from_answer(key, answer, request.tag, self.model, self.identity))
-        if self.cache is not None and self.mode != "replay" and self.cache.store(entry):
-            self.stats["stored"] += 1
-        self._use(entry)
+        storing = self.cache is not None and self.mode != "replay"
+        if storing or self.mode == "record":  # replay keeps no entry: building and scrubbing one is wasted
+            entry = scrubbed_entry(CacheEntry.from_answer(key, answer, request.tag, self.model, self.identity))
+            if storing and self.cache.store(entry):
+                self.stats["stored"] += 1
+            self._use(entry)
         return replace(answer, key=key)
 
     def _use(self, entry: CacheEntry) -> None:

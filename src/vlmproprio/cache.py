@@ -154,7 +154,7 @@ class CacheEntry:
             key=key,
             text=answer.text,
             meta=answer.meta.to_dict(),
-            tag=asdict(tag),
+            tag=tag.to_dict(),
             status="ok" if answer.text.strip() else "empty",
             model=model,
             identity=key_identity(identity),

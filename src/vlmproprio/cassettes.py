@@ -116,7 +116,9 @@ def read_cassette(path: Path | str) -> Cassette:
         if entry.key <= previous:
             raise CassetteError(f"{path}:{i}: keys not strictly increasing (duplicate or unsorted line)")
         previous = entry.key
-        entries[entry.key] = replace(entry, model=model, identity=identity)
+        if entry.model != model or entry.identity is not identity:  # a line that names its own model
+            entry = replace(entry, model=model, identity=identity)
+        entries[entry.key] = entry
     return Cassette(path=path, model=model, identity=identity, entries=entries)
 
 

@@ -8,7 +8,7 @@ behaviour beyond serialisation, so every stage can import them.
 from __future__ import annotations
 
 import hashlib
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Literal
 
@@ -64,7 +64,13 @@ class GenerationConfig:
     min_new_tokens: int | None = None
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        # explicit, in field order (as dataclasses.asdict gave): every cache key builds this dict
+        return {
+            "max_new_tokens": self.max_new_tokens,
+            "temperature": self.temperature,
+            "seed": self.seed,
+            "min_new_tokens": self.min_new_tokens,
+        }
 
 
 @dataclass(frozen=True)
@@ -75,6 +81,9 @@ class RequestTag:
     condition: str = ""
     stage: str = ""  # "p1" | "p2" | "p3"
     group: int = -1
+
+    def to_dict(self) -> dict:
+        return {"episode_id": self.episode_id, "condition": self.condition, "stage": self.stage, "group": self.group}
 
     def __str__(self) -> str:
         g = f" group {self.group}" if self.group >= 0 else ""
@@ -110,12 +119,33 @@ class AnswerMeta:
     extra: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
-        return asdict(self)
+        # explicit, in field order, ``extra`` copied as deep as dataclasses.asdict copied it
+        return {
+            "backend": self.backend,
+            "model_id": self.model_id,
+            "revision": self.revision,
+            "dtype": self.dtype,
+            "device": self.device,
+            "attn_implementation": self.attn_implementation,
+            "prompt_tokens": self.prompt_tokens,
+            "completion_tokens": self.completion_tokens,
+            "latency_s": self.latency_s,
+            "extra": _copy_data(self.extra),
+        }
 
     @classmethod
     def from_dict(cls, d: dict) -> AnswerMeta:
         known = {k: d[k] for k in cls.__dataclass_fields__ if k in d}
         return cls(**known)
+
+
+def _copy_data(obj):
+    """A copy of nested dicts, lists and tuples (the containers dataclasses.asdict rebuilds); leaves shared."""
+    if isinstance(obj, dict):
+        return type(obj)((_copy_data(k), _copy_data(v)) for k, v in obj.items())
+    if isinstance(obj, list | tuple):
+        return type(obj)(_copy_data(v) for v in obj)
+    return obj
 
 
 @dataclass(frozen=True)

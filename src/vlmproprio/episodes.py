@@ -23,13 +23,14 @@ State conventions (also written into every episode.json):
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import json
 import math
 import re
 import zipfile
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -68,8 +69,12 @@ class EpisodeError(VlmproprioError):
     """An episode or fixture set that cannot be used; the message names the file and what is wrong."""
 
 
-# (sha256 of a PNG file's bytes + the pixel digest it must have) already checked in this process
+# (sha256 of a PNG file's bytes + the pixel digest it must have) already checked in this process, or by an
+# earlier one that recorded it in a pixel ledger (see pixel_ledger)
 _PIXELS_VERIFIED: set[bytes] = set()
+PIXEL_LEDGER_FILE = "verified-pixels.txt"
+_LEDGER_LINE = re.compile(r"^([0-9a-f]{64}) ([0-9a-f]{64})$")
+MAX_LEDGER_BYTES = 8 * 1024 * 1024  # ~60 000 frames; a larger file is ignored (and rewritten smaller)
 
 
 @dataclass(frozen=True)
@@ -349,6 +354,49 @@ def verify_files(root: Path, prefix: str = "", manifest: dict[str, str] | None =
     return len(expected)
 
 
+# ---------------------------------------------------------------------------------------------- pixel ledger
+
+
+@contextlib.contextmanager
+def pixel_ledger(path: Path | None) -> Iterator[None]:
+    """Within the block, a frame whose exact PNG bytes an earlier process decoded and matched to the same pixel
+    digest (``path``: a text file in the cache folder, one ``<file sha256> <pixel sha256>`` line per pair) is not
+    decoded again; on leaving, the pairs verified so far are written back.
+
+    Decoding every frame costs ~1.3 s per process, the whole pixel check. Skipping it is as safe as the ledger:
+    a pair is recorded only after its pixels were decoded and matched here, and any other bytes or digest (a
+    flipped pixel, swapped frames, an edited episode.json) is not in it, so it is decoded and checked as before.
+    A missing, unreadable or damaged ledger just means decoding; one that cannot be written is left as it is."""
+    if path is None:
+        yield
+        return
+    known = _read_pixel_ledger(path)
+    _PIXELS_VERIFIED.update(known)
+    try:
+        yield
+    finally:
+        if _PIXELS_VERIFIED - known:  # new pairs were verified
+            _write_pixel_ledger(path, _PIXELS_VERIFIED)
+
+
+def _read_pixel_ledger(path: Path) -> set[bytes]:
+    try:
+        if path.stat().st_size > MAX_LEDGER_BYTES:
+            return set()
+        text = path.read_text(encoding="ascii")
+    except (OSError, UnicodeDecodeError):
+        return set()
+    pairs = (_LEDGER_LINE.match(line) for line in text.splitlines())
+    return {bytes.fromhex(m[1]) + m[2].encode() for m in pairs if m}
+
+
+def _write_pixel_ledger(path: Path, verified: set[bytes]) -> None:
+    lines = sorted(f"{key[:32].hex()} {key[32:].decode()}" for key in verified if len(key) == 96)
+    # a read-only or full cache folder: the next process decodes again, nothing is lost
+    with contextlib.suppress(VlmproprioError, OSError, UnicodeError):
+        atomic_write_bytes(path, ("\n".join(lines) + "\n").encode("ascii"))
+
+
 # ---------------------------------------------------------------------------------------------- io helpers
 
 
@@ -405,12 +453,13 @@ def _parse_episode(episode_dir: Path, data: dict) -> Episode:
         if data["task"] not in TASKS:
             raise EpisodeError(f"{where}: unknown task {data['task']!r} (known: {', '.join(TASKS)})")
         frames = []
+        inside = episode_dir.resolve()  # once per episode, not per frame
         for i, row in enumerate(data["frames"]):
             fw = f"{where}: frames[{i}]"
             if row["index"] != i:
                 raise EpisodeError(f"{fw}: index {row['index']} out of order")
             img = episode_dir / row["file"]
-            if episode_dir.resolve() not in img.resolve().parents:
+            if inside not in img.resolve().parents:
                 raise EpisodeError(f"{fw}: image path {row['file']!r} leaves the episode folder")
             frames.append(
                 Frame(

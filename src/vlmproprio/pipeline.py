@@ -111,9 +111,17 @@ class CellRun:
         self.scene_captions: list[parsing.Parsed] = []
         self.final: parsing.Parsed | None = None
         self.records: list[RequestRecord] = []
+        self._views: dict[tuple[int, int], prompts.FrameView] = {}
 
     # views -----------------------------------------------------------------------------------
     def _view(self, pos: int, number: int) -> prompts.FrameView:
+        # Processes 1 and 2 show the same views, Process 3 most of them again: format each state line once
+        view = self._views.get((pos, number))
+        if view is None:
+            view = self._views[(pos, number)] = self._new_view(pos, number)
+        return view
+
+    def _new_view(self, pos: int, number: int) -> prompts.FrameView:
         i = self.positions[pos]
         s = self.states
         words = s.words[i] if s.words is not None else None

@@ -25,7 +25,7 @@ from vlmproprio.answering import open_answerer
 from vlmproprio.backends.settings import BackendSettings
 from vlmproprio.cache import default_cache_dir
 from vlmproprio.conditions import Condition
-from vlmproprio.episodes import Episode, load_episodes
+from vlmproprio.episodes import PIXEL_LEDGER_FILE, Episode, load_episodes, pixel_ledger
 from vlmproprio.errors import UsageError
 from vlmproprio.io import atomic_write_text
 from vlmproprio.models import ModelRef, resolve_model
@@ -279,7 +279,8 @@ def run(plan: RunPlan) -> list[ModelRun]:
             raise UsageError(
                 f"models {slugs[model.slug]!r} and {model.name!r} would share the folder transcripts/{model.slug}"
             )
-    refuse_nesting(Path(plan.fixtures), {"--out": plan.out, "--cache-dir": plan.cache_dir or default_cache_dir()})
+    cache_dir = plan.cache_dir or default_cache_dir()
+    refuse_nesting(Path(plan.fixtures), {"--out": plan.out, "--cache-dir": cache_dir})
     settings = replace(plan.backend or BackendSettings(), cassette_dir=Path(plan.fixtures) / "responses")
     peers = load_episodes(plan.fixtures)  # verifies every episode; both_shuffled may borrow from any of them
     if plan.episode_ids is None:
@@ -299,8 +300,10 @@ def run(plan: RunPlan) -> list[ModelRun]:
         ) from exc
     runs: list[ModelRun] = []
     _write_run_file(plan, episodes, runs, "running", settings, earlier)
-    for model in plan.models:
-        runs.append(run_model(model, plan, episodes, peers, settings))
-        _write_run_file(plan, episodes, runs, "running", settings, earlier)
+    # frames verified by an earlier run with this cache folder are not decoded again (episodes.pixel_ledger)
+    with pixel_ledger(cache_dir / PIXEL_LEDGER_FILE):
+        for model in plan.models:
+            runs.append(run_model(model, plan, episodes, peers, settings))
+            _write_run_file(plan, episodes, runs, "running", settings, earlier)
     _write_run_file(plan, episodes, runs, "complete", settings, earlier)
     return runs

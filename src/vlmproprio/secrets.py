@@ -46,6 +46,25 @@ def register_secret_env(name: str) -> None:
 
 def secret_values() -> list[str]:
     """The credential values present in the environment now, longest first."""
+    return list(_current_secrets())
+
+
+# (environment copy, registered names, secrets): scrub runs for every answer and every metadata string (tens
+# of thousands of calls per run), and rescanning the environment with a regex each time cost seconds; the
+# secrets are recomputed only when os.environ or the registered names differ from the copies they came from
+_memo: tuple[dict, frozenset[str], tuple[str, ...]] | None = None
+
+
+def _current_secrets() -> tuple[str, ...]:
+    global _memo
+    env = getattr(os.environ, "_data", os.environ)  # os.environ's own dict: comparing it copies nothing
+    memo = _memo
+    if memo is None or memo[0] != env or memo[1] != _registered:
+        memo = _memo = (dict(env), frozenset(_registered), _scan_environment())
+    return memo[2]
+
+
+def _scan_environment() -> tuple[str, ...]:
     out = set()
     for name, value in os.environ.items():
         if not value or len(value.strip()) < MIN_SECRET_LEN or not any(c.isalpha() for c in value):
@@ -55,14 +74,18 @@ def secret_values() -> list[str]:
             out.add(value.strip())
             # a key with a newline is split across lines by the HTTP layer: mask each piece
             out.update(p for p in value.split() if len(p) >= MIN_SECRET_LEN)
-    return sorted(out, key=len, reverse=True)
+    return tuple(sorted(out, key=len, reverse=True))
 
 
 def scrub(text: str) -> str:
     """``text`` with every secret replaced by ``***``; unchanged when there is none."""
+    return _scrub(text, _current_secrets())
+
+
+def _scrub(text: str, secrets: tuple[str, ...]) -> str:
     if not text:
         return text
-    for value in secret_values():
+    for value in secrets:
         if value in text:
             text = text.replace(value, MASK)
     if "://" in text and "@" in text:
@@ -86,10 +109,14 @@ def public_url(url: str | None) -> str | None:
 
 def scrub_obj(obj):
     """``obj`` (decoded JSON: dicts, lists, strings, numbers) with every string scrubbed."""
+    return _scrub_obj(obj, _current_secrets())
+
+
+def _scrub_obj(obj, secrets: tuple[str, ...]):
     if isinstance(obj, str):
-        return scrub(obj)
+        return _scrub(obj, secrets)
     if isinstance(obj, dict):
-        return {scrub(k) if isinstance(k, str) else k: scrub_obj(v) for k, v in obj.items()}
+        return {_scrub(k, secrets) if isinstance(k, str) else k: _scrub_obj(v, secrets) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
-        return [scrub_obj(v) for v in obj]
+        return [_scrub_obj(v, secrets) for v in obj]
     return obj

@@ -44,6 +44,13 @@ class Backend(ABC):
     def generate(self, requests: Sequence[ChatRequest]) -> list[Answer]:
         """One answer per request, in order. Raises BackendError when it cannot answer at all."""
 
+    def generate_keyed(self, requests: Sequence[ChatRequest], keys: Sequence[str]) -> list[Answer]:
+        """``generate`` for a caller that already computed each request's cache key (``keys[i]`` is
+        ``cache.request_key(cache.key_identity(self.identity()), requests[i])``, as the Answerer computes it).
+
+        Backends that answer by key (cassette replay) use them instead of hashing every request again."""
+        return self.generate(requests)
+
     def plan_batches(self, requests: Sequence[ChatRequest]) -> list[tuple[int, ...]]:
         """How to split ``requests`` into ``generate`` calls: positions, every one exactly once.
 
