@@ -141,12 +141,15 @@ class ChanceTable:
         return sum(self._exact.values()) / len(self._exact) if self._exact else None
 
 
-def _chance_columns(prefix: str, row: dict, truth: Truth, chance: ChanceTable) -> None:
+def _chance_columns(prefix: str, row: dict, truth: Truth, chance: ChanceTable, even_of: dict) -> None:
     k = row.get(f"{prefix}points")
     if k is None:
         return
     rand = chance.random(truth, int(k))
-    even = score_points(evenly_spaced(truth.n_frames, int(k)), truth)
+    key = (truth.labels, int(k))
+    if key not in even_of:  # many rows share a ground truth and a count
+        even_of[key] = score_points(evenly_spaced(truth.n_frames, int(k)), truth)
+    even = even_of[key]
     for m in CHANCE_METRICS:
         row[f"{prefix}{m}_chance"] = rand[m]
         row[f"{prefix}{m}_lift"] = row[f"{prefix}{m}"] - rand[m]
@@ -157,10 +160,11 @@ def add_chance(rows: list[dict], truths: dict[str, Truth], chance: ChanceTable, 
     """Chance baselines and lifts for the fixed-threshold (``seg_``) and out-of-sample (``seg_loo_``) scores,
     and the score of boundaries at the frame-group edges (``seg_groups_``)."""
     groups: dict[str, dict[str, float]] = {}
+    even_of: dict[tuple[tuple[str, ...], int], dict[str, float]] = {}
     for r in rows:
         truth = truths[r["episode_id"]]
-        _chance_columns("seg_", r, truth, chance)
-        _chance_columns("seg_loo_", r, truth, chance)
+        _chance_columns("seg_", r, truth, chance, even_of)
+        _chance_columns("seg_loo_", r, truth, chance, even_of)
         if r["episode_id"] not in groups:
             edges = group_edges(truth.n_frames, group_size)
             groups[r["episode_id"]] = {"points": float(len(edges))} | score_points(edges, truth)
