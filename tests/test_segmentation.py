@@ -167,3 +167,17 @@ def test_evaluate_segmentation_on_a_door_episode():
     assert points[18] == 4 and points[19] == 8 and points[-1] == 8  # 0.9 < 0.95 but not < 0.9
     with pytest.raises(ValueError, match="trace of length"):
         evaluate_segmentation(trace[:-1], labels, 0.65)
+
+
+def test_a_cosine_cache_gives_the_bits_of_cosine():
+    from vlmproprio.segmentation import CosineCache, cosine, cosine_trace
+
+    rng = np.random.default_rng(3)
+    pool = [rng.standard_normal(16).astype(np.float32) for _ in range(4)] + [np.zeros(16, dtype=np.float32)]
+    seqs = [[pool[i] if i is not None else None for i in idx] for idx in ([0, 1, 0, 1, 2, None, 3], [4, 0, 0, 4, 1])]
+    cache = CosineCache()
+    for seq in seqs:
+        assert cosine_trace(seq, cache).tobytes() == cosine_trace(seq).tobytes()
+    for a in pool:
+        for b in pool:
+            assert np.array([cache.cosine(a, b)]).tobytes() == np.array([cosine(a, b)]).tobytes()

@@ -74,14 +74,45 @@ def cosine(a: np.ndarray, b: np.ndarray) -> float:
     return dot / math.sqrt(na2 * nb2)
 
 
-def cosine_trace(vectors: Sequence[np.ndarray | None]) -> np.ndarray:
-    """trace[j] = cos(v_j, v_{j+1}); NaN where either side is None. Length len(vectors) - 1 (0 if empty)."""
+class CosineCache:
+    """``cosine`` of many pairs among few vectors (a model repeats its captions): each vector's float64 copy and
+    squared norm once, each distinct pair's cosine once. The same ``fsum`` inputs, so the same bits as ``cosine``.
+
+    Vectors are known by identity; the cache holds a reference to each, so an id is never reused while cached."""
+
+    def __init__(self) -> None:
+        self._vectors: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
+        self._pairs: dict[tuple[int, int], float] = {}
+
+    def _prepared(self, v: np.ndarray) -> tuple[np.ndarray, float]:
+        hit = self._vectors.get(id(v))
+        if hit is None:
+            v64 = np.asarray(v, dtype=np.float32).astype(np.float64)
+            hit = self._vectors[id(v)] = (v, v64, math.fsum((v64 * v64).tolist()))
+        return hit[1], hit[2]
+
+    def cosine(self, a: np.ndarray, b: np.ndarray) -> float:
+        key = (id(a), id(b))
+        c = self._pairs.get(key)
+        if c is None:
+            (a64, na2), (b64, nb2) = self._prepared(a), self._prepared(b)
+            dot = math.fsum((a64 * b64).tolist())
+            c = float("nan") if na2 == 0.0 or nb2 == 0.0 else dot / math.sqrt(na2 * nb2)
+            self._pairs[key] = c
+        return c
+
+
+def cosine_trace(vectors: Sequence[np.ndarray | None], cache: CosineCache | None = None) -> np.ndarray:
+    """trace[j] = cos(v_j, v_{j+1}); NaN where either side is None. Length len(vectors) - 1 (0 if empty).
+
+    ``cache`` (a ``CosineCache``) shares the work between the traces of a run."""
     n = max(len(vectors) - 1, 0)
     out = np.full(n, np.nan, dtype=np.float64)
+    cos = cache.cosine if cache is not None else cosine
     for j in range(n):
         a, b = vectors[j], vectors[j + 1]
         if a is not None and b is not None:
-            out[j] = cosine(a, b)
+            out[j] = cos(a, b)
     return out
 
 

@@ -18,6 +18,7 @@ SIMD reassociation), so results have the same bits on any machine; ties
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass
@@ -60,17 +61,57 @@ def _sum_columns(columns: Iterable[np.ndarray]) -> np.ndarray:
     return total
 
 
+@functools.lru_cache(maxsize=64)
+def _bootstrap_columns(n: int, n_boot: int, seed: int) -> np.ndarray:
+    """The bootstrap's resampled episode indices, one contiguous row per draw position (read-only).
+
+    They depend only on (n, n_boot, seed), so a run's hundreds of comparisons share one draw."""
+    rng = np.random.Generator(np.random.PCG64(seed))
+    cols = np.ascontiguousarray(rng.integers(0, n, size=(n_boot, n)).T)
+    cols.flags.writeable = False
+    return cols
+
+
 def bootstrap_ci(
     d: np.ndarray, n_boot: int = DEFAULT_N_BOOT, seed: int = DEFAULT_SEED, level: float = 0.95
 ) -> tuple[float, float]:
     """Percentile bootstrap CI of the mean of ``d`` (episodes resampled with replacement)."""
     n = len(d)
-    rng = np.random.Generator(np.random.PCG64(seed))
-    idx = rng.integers(0, n, size=(n_boot, n))
-    means = _sum_columns(d[idx[:, j]] for j in range(n)) / n
+    cols = _bootstrap_columns(n, n_boot, seed)
+    means = _sum_columns(d[cols[j]] for j in range(n)) / n
     alpha = (1.0 - level) / 2.0
     lo, hi = np.quantile(means, [alpha, 1.0 - alpha], method="linear")
     return float(lo), float(hi)
+
+
+def _signs_of(codes: np.ndarray, n: int) -> np.ndarray:
+    """The sign patterns whose bits are ``codes`` (bit j set: episode j flipped), one contiguous row per episode."""
+    signs = 1.0 - 2.0 * ((codes[:, None] >> np.arange(n, dtype=np.int64)) & 1)
+    return np.ascontiguousarray(signs.T)
+
+
+@functools.lru_cache(maxsize=16)
+def _sign_patterns(n: int, n_perm: int, seed: int, max_exact: int) -> tuple[np.ndarray, ...]:
+    """The sign-flip test's patterns in chunks of at most 65 536, each (n, patterns), read-only: all 2**n when
+    n <= max_exact, else ``n_perm`` seeded draws. They depend only on these arguments, not on the data."""
+    chunks = []
+    if n <= max_exact:
+        total = 1 << n
+        for start in range(0, total, 1 << 16):
+            chunks.append(_signs_of(np.arange(start, min(start + (1 << 16), total), dtype=np.int64), n))
+    else:
+        rng = np.random.Generator(np.random.PCG64(seed + 1))
+        done = 0
+        while done < n_perm:
+            m = min(1 << 16, n_perm - done)
+            if n <= 62:  # one random integer per pattern, its bits are the signs
+                chunks.append(_signs_of(rng.integers(0, 1 << n, size=m, dtype=np.int64), n))
+            else:
+                chunks.append(np.ascontiguousarray((1.0 - 2.0 * rng.integers(0, 2, size=(m, n))).T))
+            done += m
+    for c in chunks:
+        c.flags.writeable = False
+    return tuple(chunks)
 
 
 def sign_flip_p(
@@ -80,31 +121,25 @@ def sign_flip_p(
     n = len(d)
     obs = abs(float(_sum_columns(d[j : j + 1] for j in range(n))[0]))
     tol = TIE_RTOL * max(obs, float(np.abs(d).max()), 1e-300)
-
-    def count(signs: np.ndarray) -> int:
-        stats = np.abs(_sum_columns(signs[:, j] * d[j] for j in range(n)))
-        return int(np.count_nonzero(stats >= obs - tol))
-
-    if n <= max_exact:
-        total = 1 << n
-        bits = np.arange(n, dtype=np.int64)
-        hits = 0
-        for start in range(0, total, 1 << 16):
-            codes = np.arange(start, min(start + (1 << 16), total), dtype=np.int64)
-            hits += count(1.0 - 2.0 * ((codes[:, None] >> bits) & 1))
-        return hits / total, "exact sign-flip"
-    rng = np.random.Generator(np.random.PCG64(seed + 1))
     hits = 0
-    done = 0
-    while done < n_perm:
-        m = min(1 << 16, n_perm - done)
-        if n <= 62:  # one random integer per pattern, its bits are the signs
-            codes = rng.integers(0, 1 << n, size=m, dtype=np.int64)
-            hits += count(1.0 - 2.0 * ((codes[:, None] >> np.arange(n, dtype=np.int64)) & 1))
-        else:
-            hits += count(1.0 - 2.0 * rng.integers(0, 2, size=(m, n)))
-        done += m
+    for signs in _sign_patterns(n, n_perm, seed, max_exact):
+        stats = np.abs(_sum_columns(signs[j] * d[j] for j in range(n)))
+        hits += int(np.count_nonzero(stats >= obs - tol))
+    if n <= max_exact:
+        return hits / (1 << n), "exact sign-flip"
     return (hits + 1) / (n_perm + 1), f"monte-carlo sign-flip ({n_perm})"
+
+
+@functools.lru_cache(maxsize=4096)
+def _difference_tests(
+    d_bits: bytes, n_boot: int, n_perm: int, seed: int, max_exact: int, level: float
+) -> tuple[float, float, float, str]:
+    """Bootstrap CI and sign-flip p of one vector of differences, given as its exact bits: many comparisons
+    of a run have the same differences (all zero, or a metric repeated), and they are tested once."""
+    d = np.frombuffer(d_bits, dtype=np.float64)
+    lo, hi = bootstrap_ci(d, n_boot, seed, level)
+    p, method = sign_flip_p(d, n_perm, seed, max_exact)
+    return lo, hi, p, method
 
 
 def paired_difference(
@@ -129,8 +164,7 @@ def paired_difference(
         nan = float("nan")
         return PairedResult(0, nan, nan, nan, nan, nan, nan, "none (n=0)", n_boot, seed)
     d = av - bv
-    lo, hi = bootstrap_ci(d, n_boot, seed, level)
-    p, method = sign_flip_p(d, n_perm, seed, max_exact)
+    lo, hi, p, method = _difference_tests(d.tobytes(), n_boot, n_perm, seed, max_exact, level)
     return PairedResult(n, exact_mean(av), exact_mean(bv), exact_mean(d), lo, hi, p, method, n_boot, seed)
 
 

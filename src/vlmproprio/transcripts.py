@@ -14,6 +14,7 @@ from typing import Literal
 
 from vlmproprio.errors import VlmproprioError
 from vlmproprio.io import atomic_write_text, load_json
+from vlmproprio.json_text import NotPlain, dumps_indented
 
 ParseStatus = Literal["ok", "recovered", "missing"]
 PARSE_STATUSES: tuple[str, ...] = ("ok", "recovered", "missing")
@@ -103,7 +104,12 @@ def transcript_path(run_dir: Path | str, model: str, episode_id: str, condition:
 
 def write_transcript(run_dir: Path, t: Transcript) -> Path:
     path = transcript_path(run_dir, t.model, t.episode_id, t.condition)
-    atomic_write_text(path, json.dumps(t.to_dict(), indent=1, ensure_ascii=False) + "\n")
+    d = t.to_dict()
+    try:
+        text = dumps_indented(d)  # json.dumps(d, indent=1, ensure_ascii=False), mostly by the C encoder
+    except NotPlain:
+        text = json.dumps(d, indent=1, ensure_ascii=False)
+    atomic_write_text(path, text + "\n")
     return path
 
 

@@ -14,7 +14,7 @@ from vlmproprio.episodes import Episode
 from vlmproprio.evaluation.captions import Cell, EmbeddedCaptions
 from vlmproprio.evaluation.inputs import RunInputs
 from vlmproprio.scoring import ITEMS, CaptionScore, Expectation, Lexicon, expectation_for, load_lexicon, score_text
-from vlmproprio.segmentation import SweepPoint, boundaries_at, cosine_trace, sweep
+from vlmproprio.segmentation import CosineCache, SweepPoint, boundaries_at, cosine_trace, sweep
 from vlmproprio.transcripts import Transcript, cell_key
 from vlmproprio.verdicts import ModelOutputs
 
@@ -105,11 +105,43 @@ class _Captions:
     scenes: list[CaptionScore]
 
 
-def _score_captions(t: Transcript, exp: Expectation, lex: Lexicon) -> _Captions:
+@dataclass
+class _Shared:
+    """What cells share, computed once per run: a model repeats its captions and its traces (the same text
+    scores the same against the same episode; the same trace segments the same), and every cell of an
+    episode has the same expectation. Each memo holds exactly what the computation would return again."""
+
+    expectations: dict[str, Expectation] = field(default_factory=dict)  # by episode
+    captions: dict[tuple[str, str], CaptionScore] = field(default_factory=dict)  # by (text, episode)
+    sweeps: dict[tuple[bytes, str], list[SweepPoint]] = field(default_factory=dict)  # by (trace bits, episode)
+    cosines: CosineCache = field(default_factory=CosineCache)
+
+    def expectation(self, ep: Episode, lex: Lexicon) -> Expectation:
+        if ep.episode_id not in self.expectations:
+            self.expectations[ep.episode_id] = expectation_for(ep, lex)
+        return self.expectations[ep.episode_id]
+
+    def score(self, text: str, ep: Episode, exp: Expectation, lex: Lexicon) -> CaptionScore:
+        key = (text, ep.episode_id)
+        if key not in self.captions:
+            self.captions[key] = score_text(text, exp, lex)
+        return self.captions[key]
+
+    def sweep(self, trace: np.ndarray, ep: Episode, thresholds: Sequence[float]) -> list[SweepPoint]:
+        key = (trace.tobytes(), ep.episode_id)  # the exact bits: NaN gaps and -0.0 included
+        if key not in self.sweeps:
+            self.sweeps[key] = sweep(trace, ep.frame_phases, thresholds)
+        return self.sweeps[key]
+
+
+def _score_captions(t: Transcript, ep: Episode, exp: Expectation, lex: Lexicon, shared: _Shared) -> _Captions:
     final_text = t.final if t.final_status != "missing" else ""
     scene_texts = [(s.text if s.status != "missing" else "") for s in t.scenes]
     return _Captions(
-        final_text, score_text(final_text, exp, lex), scene_texts, [score_text(x, exp, lex) for x in scene_texts]
+        final_text,
+        shared.score(final_text, ep, exp, lex),
+        scene_texts,
+        [shared.score(x, ep, exp, lex) for x in scene_texts],
     )
 
 
@@ -174,18 +206,19 @@ def score_cells(
 ) -> CellScores:
     """Score every transcript of the run (the rubric, the trace, the sweep and the fixed threshold)."""
     out = CellScores()
+    shared = _Shared()
     for t in inputs.transcripts:
         ep = inputs.episodes[t.episode_id]
         cell = (t.model, t.episode_id, t.condition)
         key = cell_key(*cell)
         lex = out.lexicons.setdefault(ep.task, load_lexicon(ep.task))
-        exp = expectation_for(ep, lex)
-        c = _score_captions(t, exp, lex)
+        exp = shared.expectation(ep, lex)
+        c = _score_captions(t, ep, exp, lex, shared)
         out.finals.append(FinalCaption(key, c.final, c.final_text, ep, t.condition))
         texts, statuses = captions.frames[cell]
-        vectors = captions.vectors
-        trace = cosine_trace([vectors[x] if s != "missing" else None for x, s in zip(texts, statuses, strict=True)])
-        points = sweep(trace, ep.frame_phases, (*thresholds, threshold))
+        vectors = [captions.vectors[x] if s != "missing" else None for x, s in zip(texts, statuses, strict=True)]
+        trace = cosine_trace(vectors, shared.cosines)
+        points = shared.sweep(trace, ep, (*thresholds, threshold))
         out.cell_sweeps[cell] = [sp.flat() for sp in points[:-1]]
         out.rows.append(_row(t, ep, c, statuses, points[-1], trace, threshold))
         for sp in out.cell_sweeps[cell]:

@@ -7,7 +7,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from vlmproprio.conditions import CONTROLS, PAPER_CONDITIONS, STATE_DIMENSIONS, get_condition, state_correlations
-from vlmproprio.episodes import Episode, load_episodes
+from vlmproprio.episodes import Episode, list_episode_ids, load_episodes
 
 
 def control_correlations(root: Path, episodes: dict[str, Episode], conditions: Sequence[str]) -> dict:
@@ -20,9 +20,11 @@ def control_correlations(root: Path, episodes: dict[str, Episode], conditions: S
         return {}
     peers = list(episodes.values())
     if any(c.source in ("shuffled", "permuted") for c in numeric):
-        # partners come from every episode of the fixtures, as in the run (runner.run)
-        loaded = set(episodes)
-        peers += [e for e in load_episodes(root, verify=False) if e.episode_id not in loaded]
+        # partners come from every episode of the fixtures, as in the run (runner.run); those the run already
+        # loaded are not read again (the whole benchmark's run has them all)
+        missing = [e for e in list_episode_ids(root) if e not in episodes]
+        if missing:
+            peers += load_episodes(root, missing, verify=False)
     out: dict = {}
     for cond in numeric:
         per_task: dict[str, dict[str, list[float]]] = {}

@@ -7,6 +7,8 @@ import io
 import json
 import math
 
+from vlmproprio.json_text import NotPlain, dumps_indented
+
 
 def _json_safe(obj):
     if isinstance(obj, float):
@@ -19,7 +21,11 @@ def _json_safe(obj):
 
 
 def dumps_json(obj) -> str:
-    return json.dumps(_json_safe(obj), indent=1, ensure_ascii=False, allow_nan=False) + "\n"
+    try:
+        # the same text as below, written mostly by the C encoder (the score files are ~9 MB per model)
+        return dumps_indented(obj, nan_as_null=True) + "\n"
+    except NotPlain:  # numpy scalars, non-string keys, ...
+        return json.dumps(_json_safe(obj), indent=1, ensure_ascii=False, allow_nan=False) + "\n"
 
 
 def dumps_csv(rows: list[dict]) -> str:

@@ -55,7 +55,7 @@ def _timing(seconds: dict[str, float], baselines: Baselines, captions: EmbeddedC
         "embed_s": seconds["embed"],
         "score_segment_s": seconds["score"],
         "chance_s": seconds["chance"],
-        "chance": {"computed": baselines.computed, "cached": baselines.cached},
+        "chance": {"computed": baselines.computed, "cached": baselines.cached, "precomputed": baselines.precomputed},
         "stats_s": seconds["stats"],
         "embeddings": captions.embedding_stats,
     }
