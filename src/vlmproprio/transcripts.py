@@ -152,13 +152,18 @@ def write_transcripts(run_dir: Path, transcripts: Sequence[Transcript]) -> list[
 
 
 def read_transcript(path: Path) -> Transcript:
+    return read_transcript_document(path)[0]
+
+
+def read_transcript_document(path: Path) -> tuple[Transcript, dict]:
+    """The transcript in ``path`` and the JSON object it was read from (left as parsed: from_dict copies)."""
     try:
         d = load_json(path, error=TranscriptError)
         if not isinstance(d, dict):
             raise TypeError("a transcript is a JSON object")
         if d.get("version") != TRANSCRIPT_VERSION:
             raise ValueError(f"version {d.get('version')!r}, expected {TRANSCRIPT_VERSION}")
-        return Transcript.from_dict(d)
+        return Transcript.from_dict(d), d
     except (OSError, ValueError, TypeError, KeyError) as exc:
         raise TranscriptError(f"{path}: cannot read transcript ({type(exc).__name__}: {exc})") from exc
 

@@ -76,12 +76,15 @@ def code_version() -> dict:
     return {"vlmproprio": __version__, "scores_version": SCORES_VERSION}
 
 
-def transcripts_digest(run_dir: Path, files: Sequence[Path]) -> str:
+def transcripts_digest(run_dir: Path, files: Sequence[Path], documents: Sequence[dict] | None = None) -> str:
     """The digest of what the transcripts say, leaving out how it was obtained (``requests``: cache hits and
-    latencies; ``timing``), which a resumed or repeated run changes without changing a word."""
+    latencies; ``timing``), which a resumed or repeated run changes without changing a word. ``documents``:
+    the files' JSON as already read (the transcripts a score computed from), instead of reading them again."""
     said = {}
-    for p in files:
-        d = load_json(p, error=ScoreRunError)
+    if documents is not None and len(documents) != len(files):
+        raise ValueError(f"{len(documents)} transcript documents for {len(files)} files")
+    for i, p in enumerate(files):
+        d = documents[i] if documents is not None else load_json(p, error=ScoreRunError)
         said[p.relative_to(run_dir).as_posix()] = (
             {k: v for k, v in d.items() if k not in ("requests", "timing")} if isinstance(d, dict) else d
         )
@@ -89,9 +92,17 @@ def transcripts_digest(run_dir: Path, files: Sequence[Path]) -> str:
 
 
 def score_inputs(
-    run_dir: Path, manifest: dict, files: Sequence[Path], fixtures: Path, episode_ids, settings: dict, lexicons: dict
+    run_dir: Path,
+    manifest: dict,
+    files: Sequence[Path],
+    fixtures: Path,
+    episode_ids,
+    settings: dict,
+    lexicons: dict,
+    documents: Sequence[dict] | None = None,
 ) -> dict:
-    """What a generation of scores is computed from, each part as a digest, and their digest (the stamp)."""
+    """What a generation of scores is computed from, each part as a digest, and their digest (the stamp).
+    ``documents``: the transcript files' JSON as the score read them (``transcripts_digest``)."""
     from vlmproprio.episodes import read_manifest
 
     try:
@@ -100,7 +111,7 @@ def score_inputs(
     except VlmproprioError:  # scored with verify=False on fixtures without a manifest
         truth = {}
     parts = {
-        "transcripts": transcripts_digest(run_dir, files),
+        "transcripts": transcripts_digest(run_dir, files, documents),
         "run_configuration": _digest(run_configuration(manifest)),
         "ground_truth": _digest(truth),
         "settings": _digest(settings),
