@@ -128,6 +128,18 @@ def _remove_leftovers(run_dir: Path) -> None:
         shutil.rmtree(p, ignore_errors=True)
 
 
+def _write_files(folder: Path, files: dict[str, str]) -> dict[str, str]:
+    """Each file written atomically into ``folder``, four at a time (the disk's fsync waits overlap); name ->
+    sha256. The first failure, in ``files`` order, is raised once every write has finished or failed."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=4, thread_name_prefix="scores") as pool:
+        futures = {
+            name: pool.submit(lambda n, t: atomic_write_text(folder / n, t), name, text) for name, text in files.items()
+        }
+    return {name: f.result() for name, f in futures.items()}
+
+
 def swap_in_generation(run_dir: Path, files: dict[str, str], inputs: dict) -> list[Path]:
     """Write ``files`` (name -> text) and stamp.json into a new folder and swap it in for RUN_DIR/scores/."""
     import os
@@ -145,7 +157,7 @@ def swap_in_generation(run_dir: Path, files: dict[str, str], inputs: dict) -> li
         with writing(out, "write scores into"):
             new.mkdir(parents=True)
         try:
-            written = {name: atomic_write_text(new / name, text) for name, text in files.items()}
+            written = _write_files(new, files)
         except WriteError as exc:  # name the folder the user knows, not the hidden one
             raise WriteError(str(exc).replace(str(new), str(out))) from exc.__cause__
         # timing.json differs between runs by nature: leaving it out keeps stamp.json byte-identical too
