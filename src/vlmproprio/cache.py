@@ -55,6 +55,7 @@ import logging
 import zlib
 from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
+from json.encoder import encode_basestring
 from pathlib import Path
 
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart, RequestTag
@@ -130,7 +131,40 @@ def key_document(identity: dict, request: ChatRequest) -> dict:
 
 def request_key(identity: dict, request: ChatRequest) -> str:
     """The cache key of ``request`` answered by the model ``identity`` (hex sha256)."""
-    return sha256_text(canonical_json(key_document(identity, request)))
+    return sha256_text(key_text(identity, request))
+
+
+_PART_TEXT: dict[str, str] = {}  # a text part's canonical JSON by its text: prompts repeat their sections
+_MAX_PART_TEXTS = 1 << 14
+
+
+def _part_json(part) -> str:
+    if isinstance(part, ImagePart):
+        return f'{{"mime":{canonical_json(part.mime)},"sha256":{canonical_json(part.sha256)},"type":"image"}}'
+    text = part.text
+    if type(text) is not str:
+        return canonical_json({"type": "text", "text": text})
+    out = _PART_TEXT.get(text)
+    if out is None:
+        # json.dumps of a str with ensure_ascii=False is exactly encode_basestring (JSONEncoder.encode)
+        out = '{"text":' + encode_basestring(text) + ',"type":"text"}'
+        if len(_PART_TEXT) < _MAX_PART_TEXTS:
+            _PART_TEXT[text] = out
+    return out
+
+
+def key_text(identity: dict, request: ChatRequest) -> str:
+    """``canonical_json(key_document(identity, request))``, laid out here in its sorted key order with each
+    prompt section encoded once: the same text, without building and sorting every request's document."""
+    messages = ",".join(
+        '{"parts":[' + ",".join(_part_json(p) for p in m.parts) + '],"role":' + canonical_json(m.role) + "}"
+        for m in request.messages
+    )
+    return (
+        f'{{"generation":{canonical_json(request.config.to_dict())},"key_version":{canonical_json(KEY_VERSION)},'
+        f'"messages":[{messages}],"model":{canonical_json(key_identity(identity))},'
+        f'"prompt_version":{canonical_json(request.prompt_version)}}}'
+    )
 
 
 # ---------------------------------------------------------------------------------------------- entries

@@ -30,7 +30,7 @@ from vlmproprio.errors import UsageError
 from vlmproprio.io import atomic_write_text
 from vlmproprio.models import ModelRef, resolve_model
 from vlmproprio.pipeline import PipelineSettings, answer_chunk, calls_per_episode, caption_episodes
-from vlmproprio.transcripts import Transcript, write_transcript
+from vlmproprio.transcripts import Transcript, write_transcripts
 
 RUN_FILE = "run.json"
 RUN_VERSION = 1
@@ -170,8 +170,7 @@ def run_model(
             chunk=answer_chunk(answerer.backend.max_batch_size),
             progress=plan.progress,
         )
-        for t in transcripts:
-            write_transcript(plan.out, t)
+        write_transcripts(plan.out, transcripts)
     cassette = str(answerer.cassette) if answerer.cassette else None
     stats = dict(answerer.stats)
     return ModelRun(model, answerer.mode, pipeline.to_dict(), dict(answerer.identity), stats, transcripts, cassette)

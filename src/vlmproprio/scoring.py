@@ -717,10 +717,14 @@ def _match_gapped(tokens: list[Token], lex: Lexicon, cands: list[_Cand]) -> list
     """Split phrasal verbs ("set it down"): extra candidates spanning verb..particle; words between keep theirs."""
     spans = {(c.first, c.last) for c in cands}
     objects = {c.first for c in cands if _tag(c, ("object",))}
+    owned: dict[int, set[tuple[str, str]]] = {}  # the tags of the matches starting at each token
+    for c in cands:
+        owned.setdefault(c.first, set()).update((t.kind, t.value) for t in c.term.tags)
     out = []
     for i, tok in enumerate(tokens):
-        own = {(t.kind, t.value) for c in cands if c.first == i for t in c.term.tags}
-        for second, tag in lex.gapped.get(tok.text, ()) if tok.is_word else ():
+        gapped = lex.gapped.get(tok.text, ()) if tok.is_word else ()
+        own = owned.get(i, set()) if gapped else set()
+        for second, tag in gapped:
             for j in range(i + 1, min(len(tokens), i + lex.gapped_window + 2)):
                 if not tokens[j].is_word or tokens[j].clause != tok.clause:
                     break
@@ -831,15 +835,35 @@ def _negated(c: _Cand, cands: list[_Cand], tokens: list[Token], lex: Lexicon) ->
     )
 
 
-def score_text(text: str, expectation: Expectation, lexicon: Lexicon) -> CaptionScore:
-    """Score one caption against what the episode says a correct caption contains."""
-    text = text or ""
-    tokens = tokenize(text, lexicon)
+@dataclass(frozen=True)
+class TextAnalysis:
+    """What a caption says in a lexicon's terms, before any episode judges it: its tokens, its matches (each
+    with one meaning and whether it is negated) and the actions a failure cue takes back. The same text and
+    lexicon give the same analysis; nothing downstream changes it, so cells with the same caption share it."""
+
+    tokens: list[Token]
+    cands: list[_Cand]
+    failed: set[int]  # ids of the action candidates a later failure cue negates
+
+
+def analyse_text(text: str, lexicon: Lexicon) -> TextAnalysis:
+    """Tokenize ``text`` and match, resolve and negate its terms (the expectation-free half of ``score_text``)."""
+    tokens = tokenize(text or "", lexicon)
     cands = _resolve(_match_terms(tokens, lexicon), tokens, lexicon)
     for c in cands:
         if c.kind in ("action", "wrong_action", "direction", "row", "image_row", "side", "column"):
             c.negated = _negated(c, cands, tokens, lexicon)
-    failed = _failed_actions(cands, tokens)
+    return TextAnalysis(tokens, cands, _failed_actions(cands, tokens))
+
+
+def score_text(
+    text: str, expectation: Expectation, lexicon: Lexicon, analysis: TextAnalysis | None = None
+) -> CaptionScore:
+    """Score one caption against what the episode says a correct caption contains. ``analysis``:
+    ``analyse_text(text, lexicon)`` when the caller already has it (it does not depend on the episode)."""
+    text = text or ""
+    analysis = analyse_text(text, lexicon) if analysis is None else analysis
+    tokens, cands, failed = analysis.tokens, analysis.cands, analysis.failed
     required = {g for alts in lexicon.required for g in alts}
     motion_of_group = {g: m for m in expectation.motions for g in m.groups}
     hits = []

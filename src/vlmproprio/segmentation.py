@@ -589,6 +589,21 @@ class SweepPoint:
         return d
 
 
+def _score_distinct_masks(masks: np.ndarray, truth: Truth, tolerances: Sequence[int]) -> dict[str, np.ndarray]:
+    """``score_masks(masks, ...)``, each distinct row scored once (most thresholds of a sweep cut a trace at the
+    same points). The same numbers: every metric is computed row by row, and the widths the rows are padded
+    to (the most points, the most merged segments) are those of the whole set, whose extreme rows stay in."""
+    first: dict[bytes, int] = {}
+    inverse = np.array([first.setdefault(row.tobytes(), i) for i, row in enumerate(masks)], dtype=np.int64)
+    if len(first) == len(masks):
+        return score_masks(masks, truth, tolerances)
+    rows = np.array(sorted(first.values()), dtype=np.int64)
+    slot = np.empty(len(masks), dtype=np.int64)
+    slot[rows] = np.arange(len(rows))
+    scores = score_masks(masks[rows], truth, tolerances)
+    return {name: values[slot[inverse]] for name, values in scores.items()}
+
+
 def sweep(
     trace: np.ndarray,
     true_labels: Sequence[str],
@@ -602,7 +617,7 @@ def sweep(
         raise ValueError(f"trace of length {len(t)} for {n} frames (expected {max(n - 1, 0)})")
     truth = truth_of(true_labels)
     masks = np.stack([t < thr for thr in thresholds]) if len(thresholds) else np.zeros((0, n - 1), dtype=bool)
-    sc = score_masks(masks, truth, tolerances)
+    sc = _score_distinct_masks(masks, truth, tolerances)
     m = len(truth.boundaries)
     out = []
     unmerged_of: dict[tuple[int, ...], float] = {}  # neighbouring thresholds often give the same points

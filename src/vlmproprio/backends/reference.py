@@ -27,6 +27,7 @@ import re
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 from vlmproprio.backends.base import Backend, BackendError
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest
@@ -62,6 +63,14 @@ class Motion:
 
 
 def motion_between(a: ParsedState, b: ParsedState) -> Motion:
+    # the same pair of states recurs in Processes 1, 2 and 3 and under several conditions; the frame numbers
+    # do not matter
+    return _motion(a.joints, a.ee, b.joints, b.ee)
+
+
+@lru_cache(maxsize=1 << 16)
+def _motion(a_joints, a_ee, b_joints, b_ee) -> Motion:
+    a, b = ParsedState(0, a_joints, a_ee), ParsedState(0, b_joints, b_ee)
     direction: tuple[str, ...] = ()
     rotates = False
     joint = None

@@ -13,7 +13,17 @@ import numpy as np
 from vlmproprio.episodes import Episode
 from vlmproprio.evaluation.captions import Cell, EmbeddedCaptions
 from vlmproprio.evaluation.inputs import RunInputs
-from vlmproprio.scoring import ITEMS, CaptionScore, Expectation, Lexicon, expectation_for, load_lexicon, score_text
+from vlmproprio.scoring import (
+    ITEMS,
+    CaptionScore,
+    Expectation,
+    Lexicon,
+    TextAnalysis,
+    analyse_text,
+    expectation_for,
+    load_lexicon,
+    score_text,
+)
 from vlmproprio.segmentation import CosineCache, SweepPoint, boundaries_at, cosine_trace, sweep
 from vlmproprio.transcripts import Transcript, cell_key
 from vlmproprio.verdicts import ModelOutputs
@@ -113,6 +123,7 @@ class _Shared:
 
     expectations: dict[str, Expectation] = field(default_factory=dict)  # by episode
     captions: dict[tuple[str, str], CaptionScore] = field(default_factory=dict)  # by (text, episode)
+    analyses: dict[tuple[str, str], TextAnalysis] = field(default_factory=dict)  # by (text, task): its lexicon
     sweeps: dict[tuple[bytes, str], list[SweepPoint]] = field(default_factory=dict)  # by (trace bits, episode)
     cosines: CosineCache = field(default_factory=CosineCache)
 
@@ -124,7 +135,11 @@ class _Shared:
     def score(self, text: str, ep: Episode, exp: Expectation, lex: Lexicon) -> CaptionScore:
         key = (text, ep.episode_id)
         if key not in self.captions:
-            self.captions[key] = score_text(text, exp, lex)
+            # the text's tokens and matches depend on the lexicon alone: shared by every episode of the task
+            analysis = self.analyses.get((text, ep.task))
+            if analysis is None:
+                analysis = self.analyses[(text, ep.task)] = analyse_text(text, lex)
+            self.captions[key] = score_text(text, exp, lex, analysis)
         return self.captions[key]
 
     def sweep(self, trace: np.ndarray, ep: Episode, thresholds: Sequence[float]) -> list[SweepPoint]:

@@ -76,12 +76,15 @@ def code_version() -> dict:
     return {"vlmproprio": __version__, "scores_version": SCORES_VERSION}
 
 
-def transcripts_digest(run_dir: Path, files: Sequence[Path]) -> str:
+def transcripts_digest(run_dir: Path, files: Sequence[Path], documents: Sequence[dict] | None = None) -> str:
     """The digest of what the transcripts say, leaving out how it was obtained (``requests``: cache hits and
-    latencies; ``timing``), which a resumed or repeated run changes without changing a word."""
+    latencies; ``timing``), which a resumed or repeated run changes without changing a word. ``documents``:
+    the files' JSON as already read (the transcripts a score computed from), instead of reading them again."""
     said = {}
-    for p in files:
-        d = load_json(p, error=ScoreRunError)
+    if documents is not None and len(documents) != len(files):
+        raise ValueError(f"{len(documents)} transcript documents for {len(files)} files")
+    for i, p in enumerate(files):
+        d = documents[i] if documents is not None else load_json(p, error=ScoreRunError)
         said[p.relative_to(run_dir).as_posix()] = (
             {k: v for k, v in d.items() if k not in ("requests", "timing")} if isinstance(d, dict) else d
         )
@@ -89,9 +92,17 @@ def transcripts_digest(run_dir: Path, files: Sequence[Path]) -> str:
 
 
 def score_inputs(
-    run_dir: Path, manifest: dict, files: Sequence[Path], fixtures: Path, episode_ids, settings: dict, lexicons: dict
+    run_dir: Path,
+    manifest: dict,
+    files: Sequence[Path],
+    fixtures: Path,
+    episode_ids,
+    settings: dict,
+    lexicons: dict,
+    documents: Sequence[dict] | None = None,
 ) -> dict:
-    """What a generation of scores is computed from, each part as a digest, and their digest (the stamp)."""
+    """What a generation of scores is computed from, each part as a digest, and their digest (the stamp).
+    ``documents``: the transcript files' JSON as the score read them (``transcripts_digest``)."""
     from vlmproprio.episodes import read_manifest
 
     try:
@@ -100,7 +111,7 @@ def score_inputs(
     except VlmproprioError:  # scored with verify=False on fixtures without a manifest
         truth = {}
     parts = {
-        "transcripts": transcripts_digest(run_dir, files),
+        "transcripts": transcripts_digest(run_dir, files, documents),
         "run_configuration": _digest(run_configuration(manifest)),
         "ground_truth": _digest(truth),
         "settings": _digest(settings),
@@ -115,6 +126,18 @@ def _remove_leftovers(run_dir: Path) -> None:
 
     for p in run_dir.glob(GENERATION_PREFIX + "*"):
         shutil.rmtree(p, ignore_errors=True)
+
+
+def _write_files(folder: Path, files: dict[str, str]) -> dict[str, str]:
+    """Each file written atomically into ``folder``, four at a time (the disk's fsync waits overlap); name ->
+    sha256. The first failure, in ``files`` order, is raised once every write has finished or failed."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=4, thread_name_prefix="scores") as pool:
+        futures = {
+            name: pool.submit(lambda n, t: atomic_write_text(folder / n, t), name, text) for name, text in files.items()
+        }
+    return {name: f.result() for name, f in futures.items()}
 
 
 def swap_in_generation(run_dir: Path, files: dict[str, str], inputs: dict) -> list[Path]:
@@ -134,7 +157,7 @@ def swap_in_generation(run_dir: Path, files: dict[str, str], inputs: dict) -> li
         with writing(out, "write scores into"):
             new.mkdir(parents=True)
         try:
-            written = {name: atomic_write_text(new / name, text) for name, text in files.items()}
+            written = _write_files(new, files)
         except WriteError as exc:  # name the folder the user knows, not the hidden one
             raise WriteError(str(exc).replace(str(new), str(out))) from exc.__cause__
         # timing.json differs between runs by nature: leaving it out keeps stamp.json byte-identical too

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from vlmproprio.conditions import CONTROLS, PAPER_CONDITIONS
@@ -11,7 +11,7 @@ from vlmproprio.episodes import Episode, load_episodes
 from vlmproprio.errors import VlmproprioError
 from vlmproprio.io import load_json
 from vlmproprio.segmentation import caption_present
-from vlmproprio.transcripts import Transcript, read_transcript
+from vlmproprio.transcripts import Transcript, read_transcript_document
 
 DEFAULT_GROUP_SIZE = 5
 
@@ -114,6 +114,8 @@ class RunInputs:
     episodes: dict[str, Episode]
     episode_order: dict[str, int]  # episode id -> its place in run.json (others after, by id)
     conditions: list[str]  # the transcripts' conditions, in condition_order
+    # the JSON objects the transcripts were read from, one per file: the stamp digests exactly what was scored
+    transcript_documents: list[dict] = field(default_factory=list)
 
     @property
     def episode_ids(self) -> list[str]:
@@ -130,7 +132,8 @@ def load_run_inputs(run_dir: Path, fixtures: str | Path | None, verify: bool) ->
         raise ScoreRunError(f"{run_dir}: run directory not found")
     manifest = read_run_manifest(run_dir)
     transcript_files = run_transcript_files(run_dir, manifest)
-    transcripts = [read_transcript(p) for p in transcript_files]
+    read = [read_transcript_document(p) for p in transcript_files]
+    transcripts = [t for t, _ in read]
     if not transcripts:
         raise ScoreRunError(
             f"{run_dir / 'transcripts'}: no transcripts (run `vlmproprio run --model NAME --out {run_dir}` first)"
@@ -141,4 +144,5 @@ def load_run_inputs(run_dir: Path, fixtures: str | Path | None, verify: bool) ->
     run_order = [e for e in manifest.get("episodes", []) if isinstance(e, str)]
     episode_order = {e: i for i, e in enumerate([*run_order, *[i for i in ids if i not in run_order]])}
     conds = condition_order([t.condition for t in transcripts])
-    return RunInputs(run_dir, manifest, transcript_files, transcripts, root, episodes, episode_order, conds)
+    documents = [d for _, d in read]
+    return RunInputs(run_dir, manifest, transcript_files, transcripts, root, episodes, episode_order, conds, documents)

@@ -75,6 +75,7 @@ def _write(inputs: RunInputs, tables: ScoreTables) -> None:
         inputs.episode_ids,
         score_settings,
         meta["lexicons"],
+        inputs.transcript_documents if len(inputs.transcript_documents) == len(inputs.transcript_files) else None,
     )
     write_score_tables(inputs.run_dir, tables, stamp)
 

@@ -17,6 +17,7 @@ import math
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 DECIMALS = 3
 JOINT_LABEL = "joint angles"
@@ -36,8 +37,18 @@ def format_number(x: float) -> str:
     return "0.000" if s == "-0.000" else s  # one text for zero, whatever its sign
 
 
+_VECTOR_TEXT: dict[tuple, str] = {}  # a run writes each frame's state under several conditions and prompts
+_MAX_REMEMBERED = 1 << 16
+
+
 def format_vector(values: Sequence[float]) -> str:
-    return "[" + ", ".join(format_number(float(v)) for v in values) + "]"
+    key = tuple(values)  # equal numbers (0.0 and -0.0 too) give equal text; a NaN never equals itself here
+    text = _VECTOR_TEXT.get(key)
+    if text is None:
+        text = "[" + ", ".join(format_number(float(v)) for v in key) + "]"
+        if len(_VECTOR_TEXT) < _MAX_REMEMBERED:
+            _VECTOR_TEXT[key] = text
+    return text
 
 
 def format_state_line(
@@ -61,6 +72,7 @@ class ParsedState:
     ee: tuple[float, ...] | None
 
 
+@lru_cache(maxsize=_MAX_REMEMBERED)  # the reference captioner reads the same state lines in many prompts
 def _floats(s: str) -> tuple[float, ...] | None:
     try:
         vals = tuple(float(t) for t in s.split(","))
