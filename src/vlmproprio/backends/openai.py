@@ -33,6 +33,7 @@ from collections.abc import Sequence
 from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 
 from vlmproprio.backends.base import Backend, BackendError
+from vlmproprio.backends.settings import OpenAISettings
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart
 
 log = logging.getLogger(__name__)
@@ -107,11 +108,13 @@ class OpenAIBackend(Backend):
         if not api_key_env.replace("_", "").isalnum():
             raise BackendError(f"api_key_env must be an environment variable name, got {api_key_env!r}")
         self.model = model
-        self.base_url = base_url
-        self.api_key_env = api_key_env
-        self.concurrency = concurrency
-        self.timeout_s = timeout_s
-        self.max_retries = max_retries
+        self.settings = OpenAISettings(
+            base_url=base_url,
+            api_key_env=api_key_env,
+            concurrency=concurrency,
+            timeout_s=timeout_s,
+            max_retries=max_retries,
+        )
         self.backoff_s = backoff_s
         # enough requests per call to keep every worker busy, few enough that a crash loses little
         self.max_batch_size = max_batch_size or max(16, 4 * concurrency)
@@ -132,7 +135,7 @@ class OpenAIBackend(Backend):
         self._key_for_client = key or NO_KEY_PLACEHOLDER
 
     def __repr__(self) -> str:  # never show the key, even by accident
-        return f"OpenAIBackend(model={self.model!r}, base_url={self.base_url!r}, concurrency={self.concurrency})"
+        return f"OpenAIBackend(model={self.model!r}, base_url={self.settings.base_url!r}, concurrency={self.settings.concurrency})"
 
     def identity(self) -> dict[str, str]:
         # The server URL is not part of the identity: a recording replays wherever the cassette goes.
@@ -146,9 +149,9 @@ class OpenAIBackend(Backend):
 
                 self._client = openai.OpenAI(
                     api_key=self._key_for_client,
-                    base_url=self.base_url,
-                    timeout=self.timeout_s,
-                    max_retries=self.max_retries,
+                    base_url=self.settings.base_url,
+                    timeout=self.settings.timeout_s,
+                    max_retries=self.settings.max_retries,
                 )
             return self._client
 
@@ -163,7 +166,9 @@ class OpenAIBackend(Backend):
         results: list[Answer | None] = [None] * len(requests)
         if not requests:
             return []
-        pool = ThreadPoolExecutor(max_workers=min(self.concurrency, len(requests)), thread_name_prefix="openai")
+        pool = ThreadPoolExecutor(
+            max_workers=min(self.settings.concurrency, len(requests)), thread_name_prefix="openai"
+        )
         try:
             futures = {pool.submit(self._one, r): i for i, r in enumerate(requests)}
             done, _ = wait(futures, return_when=FIRST_EXCEPTION)
@@ -192,8 +197,8 @@ class OpenAIBackend(Backend):
         import openai
 
         body = self._body(request)
-        where = self.base_url or "the OpenAI API"
-        attempts = 1 + self.max_retries
+        where = self.settings.base_url or "the OpenAI API"
+        attempts = 1 + self.settings.max_retries
         for attempt in range(1, attempts + 1):
             t0 = time.perf_counter()
             try:
@@ -212,7 +217,7 @@ class OpenAIBackend(Backend):
                 continue
             except openai.APITimeoutError:
                 raise BackendError(
-                    f"{where} did not answer within {self.timeout_s:g} s ({attempts} tries); raise --timeout or check "
+                    f"{where} did not answer within {self.settings.timeout_s:g} s ({attempts} tries); raise --timeout or check "
                     "the server"
                 ) from None
             except openai.APIConnectionError as exc:
@@ -223,7 +228,7 @@ class OpenAIBackend(Backend):
             except openai.APIStatusError as exc:
                 detail = _error_detail(exc)
                 hint = {
-                    401: "check the API key in $" + self.api_key_env,
+                    401: "check the API key in $" + self.settings.api_key_env,
                     403: "the key may lack access to this model",
                     404: f"does the server serve model {self.model!r}?",
                     429: "rate limited even after retries; lower --concurrency or wait",
