@@ -18,7 +18,7 @@ import json
 import os
 import sqlite3
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 
 from vlmproprio.errors import VlmproprioError
@@ -116,6 +116,23 @@ def atomic_write_text(path: Path | str, text: str) -> str:
     from vlmproprio.secrets import scrub
 
     return atomic_write_bytes(path, scrub(text).encode("utf-8"))
+
+
+WRITERS = 4  # threads writing files at once: creating and fsyncing files waits on the disk, not the interpreter
+
+
+def atomic_write_texts(files: Mapping[Path, str]) -> dict[Path, str]:
+    """``atomic_write_text`` for each path -> text, several at a time (a run's ~200 transcripts or a score's 16
+    files are ~2 ms of file creation and fsync each, which threads overlap); path -> sha256 of the bytes written.
+    Each file is still written atomically on its own; the first failure, in ``files`` order, is raised once
+    every write has finished or failed."""
+    if len(files) < 2:
+        return {path: atomic_write_text(path, text) for path, text in files.items()}
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=WRITERS, thread_name_prefix="writers") as pool:
+        futures = {path: pool.submit(atomic_write_text, path, text) for path, text in files.items()}
+    return {path: f.result() for path, f in futures.items()}
 
 
 def sha256_file(path: Path | str) -> str:

@@ -9,13 +9,12 @@ from __future__ import annotations
 
 import json
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 from vlmproprio.errors import VlmproprioError
-from vlmproprio.io import atomic_write_text, load_json
+from vlmproprio.io import atomic_write_text, atomic_write_texts, load_json
 from vlmproprio.json_text import NotPlain, dumps_indented
 
 ParseStatus = Literal["ok", "recovered", "missing"]
@@ -126,29 +125,26 @@ def transcript_path(run_dir: Path | str, model: str, episode_id: str, condition:
     return Path(run_dir) / "transcripts" / model / transcript_filename(episode_id, condition)
 
 
-def write_transcript(run_dir: Path, t: Transcript) -> Path:
-    path = transcript_path(run_dir, t.model, t.episode_id, t.condition)
+def transcript_text(t: Transcript) -> str:
+    """The transcript file's text: ``json.dumps(indent=1, ensure_ascii=False)``, mostly by the C encoder."""
     d = t.to_dict()
     try:
-        text = dumps_indented(d)  # json.dumps(d, indent=1, ensure_ascii=False), mostly by the C encoder
+        return dumps_indented(d) + "\n"
     except NotPlain:
-        text = json.dumps(d, indent=1, ensure_ascii=False)
-    atomic_write_text(path, text + "\n")
+        return json.dumps(d, indent=1, ensure_ascii=False) + "\n"
+
+
+def write_transcript(run_dir: Path, t: Transcript) -> Path:
+    path = transcript_path(run_dir, t.model, t.episode_id, t.condition)
+    atomic_write_text(path, transcript_text(t))
     return path
 
 
-WRITERS = 4  # threads writing transcripts: creating and fsyncing files waits on the disk, not the interpreter
-
-
 def write_transcripts(run_dir: Path, transcripts: Sequence[Transcript]) -> list[Path]:
-    """``write_transcript`` for each, several at a time: a whole run's ~200 files are ~2 ms of file creation
-    and fsync each, which threads overlap. Each file is still written atomically on its own; the first failure
-    (in ``transcripts`` order) is raised once every write has finished or failed."""
-    if len(transcripts) < 2:
-        return [write_transcript(run_dir, t) for t in transcripts]
-    with ThreadPoolExecutor(max_workers=WRITERS, thread_name_prefix="transcripts") as pool:
-        futures = [pool.submit(write_transcript, run_dir, t) for t in transcripts]
-    return [f.result() for f in futures]
+    """``write_transcript`` for each, several at a time (``io.atomic_write_texts``); the first failure, in
+    ``transcripts`` order, is raised once every write has finished or failed."""
+    files = {transcript_path(run_dir, t.model, t.episode_id, t.condition): transcript_text(t) for t in transcripts}
+    return list(atomic_write_texts(files))
 
 
 def read_transcript(path: Path) -> Transcript:

@@ -149,7 +149,7 @@ def test_the_same_run_again_and_another_model_are_accepted(scored):
 # Where a `score` is killed: after the n-th file of the new generation, or between the two renames of the swap.
 KILL_POINTS = [("write", 1), ("write", 7), ("write", 15), ("rename", 1), ("rename", 2)]
 KILL_PRELUDE = """
-import os, signal, pathlib, vlmproprio.evaluation.generations as ev
+import os, signal, pathlib, vlmproprio.io as io, vlmproprio.evaluation.generations as ev
 count = {{"write": 0, "rename": 0}}
 def kill_at(kind):
     count[kind] += 1
@@ -162,7 +162,7 @@ def write(path, text):
 def rename(self, target):
     kill_at("rename")
     return real_rename(self, target)
-ev.atomic_write_text = write
+ev.atomic_write_text = io.atomic_write_text = write  # the stamp, and the score files (io.atomic_write_texts)
 pathlib.Path.rename = rename
 """
 

@@ -12,7 +12,15 @@ from vlmproprio.evaluation.definitions import SCORES_VERSION
 from vlmproprio.evaluation.formats import dumps_csv, dumps_json
 from vlmproprio.evaluation.inputs import ScoreRunError, read_run_manifest, run_transcript_files
 from vlmproprio.evaluation.tables import ScoreTables
-from vlmproprio.io import WriteError, atomic_write_text, load_json, load_required_json, sha256_file, writing
+from vlmproprio.io import (
+    WriteError,
+    atomic_write_text,
+    atomic_write_texts,
+    load_json,
+    load_required_json,
+    sha256_file,
+    writing,
+)
 
 
 def write_score_tables(run_dir: str | Path, tables: ScoreTables, inputs: dict | None = None) -> list[Path]:
@@ -129,15 +137,10 @@ def _remove_leftovers(run_dir: Path) -> None:
 
 
 def _write_files(folder: Path, files: dict[str, str]) -> dict[str, str]:
-    """Each file written atomically into ``folder``, four at a time (the disk's fsync waits overlap); name ->
+    """Each file written atomically into ``folder``, several at a time (``io.atomic_write_texts``); name ->
     sha256. The first failure, in ``files`` order, is raised once every write has finished or failed."""
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(max_workers=4, thread_name_prefix="scores") as pool:
-        futures = {
-            name: pool.submit(lambda n, t: atomic_write_text(folder / n, t), name, text) for name, text in files.items()
-        }
-    return {name: f.result() for name, f in futures.items()}
+    digests = atomic_write_texts({folder / name: text for name, text in files.items()})
+    return {path.name: digest for path, digest in digests.items()}
 
 
 def swap_in_generation(run_dir: Path, files: dict[str, str], inputs: dict) -> list[Path]:
