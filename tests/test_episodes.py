@@ -210,3 +210,24 @@ def test_a_damaged_or_unwritable_pixel_ledger_only_means_decoding(fixture_root: 
     assert len(E._PIXELS_VERIFIED) == 1
     if damage == "garbage":
         assert len(ledger.read_text().splitlines()) == 1  # rewritten with the pair verified
+
+
+def test_frame_images_are_the_frames_bytes_in_order_and_name_the_first_bad_frame(tmp_path: Path, monkeypatch):
+    root = _synthetic(tmp_path / "fx", n_frames=9)
+    frames = E.load_episode(root, "door_00").frames
+    _fresh_process(monkeypatch)
+    assert E.frame_images(frames) == [f.image_path.read_bytes() for f in frames]
+    assert len(E._PIXELS_VERIFIED) == 9  # every frame decoded and checked, by whichever thread
+
+    # two frames damaged behind a regenerated manifest: the earlier one is named, as a plain loop would
+    from PIL import Image
+
+    for i in (6, 3):
+        path = frames[i].image_path
+        rgb = np.asarray(Image.open(path).convert("RGB")).copy()
+        rgb[1, 1, 1] ^= 1
+        Image.fromarray(rgb, "RGB").save(path, format="PNG")
+    E.write_manifest(root)
+    _fresh_process(monkeypatch)
+    with pytest.raises(E.EpisodeError, match=r"003\.png: its pixels differ"):
+        E.frame_images(E.load_episode(root, "door_00").frames)

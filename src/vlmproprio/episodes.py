@@ -142,6 +142,23 @@ class Frame:
             raise EpisodeError(f"{self.image_path}: cannot decode image ({exc})") from exc
 
 
+IMAGE_THREADS = 4  # a cold pixel check is PNG decoding, which Pillow does without holding the GIL
+
+
+def frame_images(frames: Sequence[Frame]) -> list[bytes]:
+    """``[f.image_bytes() for f in frames]``, read and checked by a few threads.
+
+    A process without a pixel ledger decodes every frame (~2 ms each, 1.3 s for the fixtures); the decoding and
+    hashing release the GIL, so on two cores this takes about half as long. Same bytes, same order; when frames
+    fail, the first failing one in order raises, as the plain loop would."""
+    if len(frames) < 2:
+        return [f.image_bytes() for f in frames]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(min(IMAGE_THREADS, len(frames)), thread_name_prefix="frame-images") as pool:
+        return list(pool.map(Frame.image_bytes, frames))
+
+
 @dataclass(frozen=True)
 class TargetBin:
     """Where the object must go in PickPlace, in robosuite's index and in words as seen in the image."""

@@ -65,7 +65,7 @@ from vlmproprio import prompts
 from vlmproprio.cache import request_key
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, GenerationConfig, ImagePart, Message, TextPart
 from vlmproprio.conditions import frame_states, get_condition, parse_conditions
-from vlmproprio.episodes import Episode, load_episodes
+from vlmproprio.episodes import Episode, frame_images, load_episodes
 from vlmproprio.errors import UsageError, VlmproprioError
 from vlmproprio.evaluation import PAIRED_METRICS, score_run
 from vlmproprio.locations import resolve_fixtures
@@ -209,7 +209,7 @@ def paper_processes(fixtures: str = DEFAULT_FIXTURES, **pipeline: Any):
         episodes = _fixture_set(str(Path(state.metadata.get("fixtures", fixtures)).resolve()))
         ep = episodes[state.metadata["episode_id"]]
         cond = get_condition(state.metadata["condition"])
-        images = [ImagePart(f.image_bytes()) for f in ep.frames]
+        images = [ImagePart(data) for data in frame_images(ep.frames)]
         cell = CellRun(ep, cond, images, frame_states(ep, cond, list(episodes.values())), settings)
         model = get_model()
         async with span("process 1: a caption per frame"):

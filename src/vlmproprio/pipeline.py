@@ -26,7 +26,7 @@ import numpy as np
 from vlmproprio import parsing, prompts
 from vlmproprio.chat import Answer, ChatRequest, GenerationConfig, ImagePart, RequestTag
 from vlmproprio.conditions import Condition, FrameStates, frame_states
-from vlmproprio.episodes import Episode
+from vlmproprio.episodes import Episode, frame_images
 from vlmproprio.errors import UsageError
 from vlmproprio.transcripts import FrameCaption, RequestRecord, SceneCaption, Transcript
 
@@ -257,8 +257,11 @@ def caption_episodes(
 
     peers = episodes if peers is None else peers
     runs: list[CellRun] = []
+    frames = frame_images([f for ep in episodes for f in ep.frames])  # read once, shared by every condition
+    start = 0
     for ep in episodes:
-        images = [ImagePart(f.image_bytes()) for f in ep.frames]  # read once, shared by every condition
+        images = [ImagePart(data) for data in frames[start : start + len(ep.frames)]]
+        start += len(ep.frames)
         for cond in conditions:
             runs.append(CellRun(ep, cond, images, frame_states(ep, cond, peers), settings))
     total = sum(2 * len(r.groups) + 1 for r in runs)

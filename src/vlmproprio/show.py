@@ -16,7 +16,7 @@ from vlmproprio import prompts
 from vlmproprio.cache import request_key
 from vlmproprio.chat import ChatRequest, ImagePart
 from vlmproprio.conditions import frame_states, get_condition
-from vlmproprio.episodes import load_episodes
+from vlmproprio.episodes import frame_images, load_episodes
 from vlmproprio.errors import UsageError
 from vlmproprio.io import load_required_json
 from vlmproprio.parsing import Parsed
@@ -91,7 +91,7 @@ def rerender(
     peers = load_episodes(root)  # both_shuffled borrows another episode's states, as the run did
     episode = next(e for e in peers if e.episode_id == episode_id)
     cond = get_condition(condition)
-    images = [ImagePart(f.image_bytes()) for f in episode.frames]
+    images = [ImagePart(data) for data in frame_images(episode.frames)]
     cell = CellRun(episode, cond, images, frame_states(episode, cond, peers), settings)
     recorded = {(r.stage, r.group): r.key for r in t.requests}
     identity = m.get("identity", {})

@@ -6,7 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from vlmproprio.episodes import check_steps, load_episodes, read_manifest, verify_files
+from vlmproprio.episodes import check_steps, frame_images, load_episodes, read_manifest, verify_files
 
 
 @dataclass(frozen=True)
@@ -38,8 +38,7 @@ def fixture_summary(root: Path) -> FixtureSummary:
     # what a regenerated manifest would bless: a steps.npz or a frame swapped in from elsewhere, a flipped pixel
     for e in episodes:
         check_steps(e)
-        for f in e.frames:
-            f.image_bytes()
+        frame_images(e.frames)
     tasks = []
     for task in sorted({e.task for e in episodes}):
         eps = [e for e in episodes if e.task == task]
