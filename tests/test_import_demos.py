@@ -313,11 +313,16 @@ TASK_OF = {"door": "door", "cereal": "pick_place_cereal", "can": "pick_place_can
 
 @pytest.fixture(scope="module")
 def imported(collected, tmp_path_factory):
-    """All demo files imported into one fixture folder with the CLI: (folder, {episode id: (file key, run)})."""
+    """All demo files imported into one fixture folder with the CLI: (folder, {episode id: (file key, run)}).
+
+    Frames are written as level-1 PNGs (tests/png_helpers.py): the tests compare decoded pixels, not PNG bytes."""
+    from png_helpers import fast_png_writes
+
     root = tmp_path_factory.mktemp("imported")
     pairs = {}
     for key, (path, runs) in collected.items():
-        assert main(["import-demos", str(path), "--task", TASK_OF[key], "--out", str(root), "--no-progress"]) == 0
+        with fast_png_writes():
+            assert main(["import-demos", str(path), "--task", TASK_OF[key], "--out", str(root), "--no-progress"]) == 0
         for name, run in zip(demos.read_demo_file(path).demos, runs, strict=True):
             pairs[demos.episode_id_for(f"imp_{TASK_OF[key]}", name, 0)] = (key, run)
     return root, pairs

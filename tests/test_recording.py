@@ -2,9 +2,10 @@
 
 episode.json holds every sampled frame's pixel hash, state and ground truth. Pixels, ground truth and every
 non-float field must be equal exactly (PNG bytes may differ across PNG encoder versions and are therefore
-compared through their decoded pixels). The simulated states may differ in their last bits on a CPU with other
-vector instructions than the recording machine's (AVX2 vs AVX-512 change MuJoCo's and numpy's float order):
-they are compared to 1e-9 relative, far below anything a caption or a phase boundary can see.
+compared through their decoded pixels; the fresh frames are written as cheap level-1 PNGs, see
+tests/png_helpers.py). The simulated states may differ in their last bits on a CPU with other vector
+instructions than the recording machine's (AVX2 vs AVX-512 change MuJoCo's and numpy's float order): they are
+compared to 1e-9 relative, far below anything a caption or a phase boundary can see.
 """
 
 from __future__ import annotations
@@ -31,12 +32,16 @@ FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 @pytest.mark.slow
 @pytest.mark.parametrize("episode_id", ["door_03", "bin3_00"])
 def test_rerecording_reproduces_the_fixture(tmp_path: Path, episode_id: str) -> None:
+    from png_helpers import fast_png_writes
     from vlmproprio.record.recorder import episode_spec, record_episode
 
     frozen = load_episode(FIXTURES, episode_id)
-    record_episode(episode_spec(episode_id), tmp_path)
+    with fast_png_writes():
+        record_episode(episode_spec(episode_id), tmp_path)
     fresh = load_episode(tmp_path, episode_id, verify=False)
     assert [f.image_sha256 for f in fresh.frames] == [f.image_sha256 for f in frozen.frames]
+    for frame in fresh.frames:
+        frame.image_bytes()  # a whole PNG whose decoded pixels hash to the frame's (= the fixture's) pixel_sha256
     _assert_close(
         json.loads((fresh.root / "episode.json").read_text()),
         json.loads((frozen.root / "episode.json").read_text()),
