@@ -88,7 +88,7 @@ def test_sigkill_at_random_points_then_resume_gives_the_uninterrupted_run(tmp_pa
     with FakeOpenAIServer(latency_s=0.01, responder=caption_responder) as server:
         t0 = time.monotonic()
         straight = forked_cli(
-            _run_args(server, fixtures, tmp_path / "straight", tmp_path / "straight-cache"), tmp_path / "logs" / "s"
+            _run_args(server, fixtures, tmp_path / "straight", tmp_path / "straight-cache"), tmp_path / "logs"
         )
         straight_s = time.monotonic() - t0
         assert straight.returncode == 0, straight.stderr
@@ -121,7 +121,7 @@ def test_sigkill_at_random_points_then_resume_gives_the_uninterrupted_run(tmp_pa
                 else:
                     n, delay = to_ask, rng.uniform(0, 0.15)
                 seen = len(server.chat_requests)
-                proc = CliProcess(_run_args(server, fixtures, out, cache), tmp_path / "logs" / f"c{chain}-{kills}")
+                proc = CliProcess(_run_args(server, fixtures, out, cache), tmp_path / "logs")
                 _kill_at(proc, server, seen, n, delay)
                 err = proc.stderr()
                 if proc.returncode == 0:
@@ -146,7 +146,7 @@ def test_sigkill_at_random_points_then_resume_gives_the_uninterrupted_run(tmp_pa
 
             answers = cache_answers(cache)
             seen = len(server.chat_requests)
-            resumed = forked_cli(_run_args(server, fixtures, out, cache), tmp_path / "logs" / f"c{chain}-resume")
+            resumed = forked_cli(_run_args(server, fixtures, out, cache), tmp_path / "logs")
             assert resumed.returncode == 0, resumed.stderr
             # nothing already stored is asked again, nothing missing is skipped
             assert len(server.chat_requests) - seen == n_requests - len(answers)
@@ -211,7 +211,7 @@ def test_sigkill_while_answers_are_being_stored(tmp_path, figures):
         head = ["run", "--model", "reference", "--fixtures", str(fixtures), "--conditions", "none,both,primitives"]
         return [*head, "--no-progress", "--out", str(out), "--cache-dir", str(cache)]
 
-    straight = forked_cli(args(tmp_path / "straight", tmp_path / "straight-cache"), tmp_path / "logs" / "s")
+    straight = forked_cli(args(tmp_path / "straight", tmp_path / "straight-cache"), tmp_path / "logs")
     assert straight.returncode == 0, straight.stderr
     expected_answers = cache_answers(tmp_path / "straight-cache")
     expected_transcripts = transcripts_of(tmp_path / "straight")
@@ -222,7 +222,7 @@ def test_sigkill_while_answers_are_being_stored(tmp_path, figures):
         out, cache = tmp_path / f"r{trial:02d}", tmp_path / f"r{trial:02d}-cache"
         trial += 1
         n = rng.randint(1, len(expected_answers) - 1)
-        proc = CliProcess(args(out, cache), tmp_path / "logs" / f"r{trial:02d}")
+        proc = CliProcess(args(out, cache), tmp_path / "logs")
         _kill_when_stored(proc, cache / "cache.db", n, rng.uniform(0, 0.003))
         if proc.returncode == 0:
             continue
@@ -232,7 +232,7 @@ def test_sigkill_while_answers_are_being_stored(tmp_path, figures):
         assert answers.items() <= expected_answers.items()
         assert transcripts_of(out).items() <= expected_transcripts.items()
         mid_stream += 0 < len(answers) < len(expected_answers)
-        resumed = forked_cli(args(out, cache), tmp_path / "logs" / f"r{trial:02d}-resume")
+        resumed = forked_cli(args(out, cache), tmp_path / "logs")
         assert resumed.returncode == 0, resumed.stderr
         assert cache_answers(cache) == expected_answers
         assert transcripts_of(out) == expected_transcripts
