@@ -84,7 +84,8 @@ def _stop_server() -> None:
         stop()
 
 
-def _context() -> multiprocessing.context.ForkServerContext:
+def fork_context() -> multiprocessing.context.ForkServerContext:
+    """The multiprocessing context whose processes are forked from the import-once server (started here)."""
     ctx = multiprocessing.get_context("forkserver")
     ctx.set_forkserver_preload(list(PRELOAD))
     if multiprocessing.forkserver._forkserver._forkserver_pid is not None:
@@ -123,7 +124,7 @@ class CliProcess:
             path.write_bytes(b"")  # here, not in the child: a kill can land before it runs a line of its own
         self.args = [str(a) for a in args]
         outputs = (str(self.stdout_path), str(self.stderr_path))
-        self._process = _context().Process(
+        self._process = fork_context().Process(
             target=_run_cli, args=(self.args, env or cli_env(), str(cwd), outputs, python_prelude)
         )
         self._process.start()
