@@ -1,8 +1,9 @@
 """Item 2, concurrency: four processes run overlapping episodes against one response cache.
 
 Each worker is a real ``vlmproprio.runner.run`` (the code behind ``vlmproprio run``) in its own process
-(multiprocessing, spawn), started together behind a barrier, live mode, the reference model (instant, so the
-processes hammer the SQLite cache as hard as they can). Every answer must be stored exactly once (the stored
+(multiprocessing, forked from a server that imported vlmproprio once: fast_support), started together behind
+a barrier, live mode, the reference model (instant, so the processes hammer the SQLite cache as hard as they
+can). Every answer must be stored exactly once (the stored
 counts of the four runs add up to the number of entries), none lost (the cache equals that of one process
 running every episode alone), every worker's transcripts equal the solo run's, and no worker fails (no
 "database is locked").
@@ -13,10 +14,10 @@ tests/test_cache.py::test_four_processes_share_one_cache.
 
 from __future__ import annotations
 
-import multiprocessing
 import traceback
 from pathlib import Path
 
+from fast_support import fork_context
 from reliability_support import cache_answers, fixture_subset, transcripts_of
 
 EPISODES = ["door_00", "door_05", "bin0_01", "bin1_02", "bin2_00", "bin3_01"]
@@ -74,7 +75,9 @@ def test_four_processes_overlapping_episodes_one_cache(tmp_path, figures):
     assert len(expected_answers) == solo.stats["stored"] > 500
     assert len(expected_transcripts) == len(EPISODES) * n_conditions
 
-    ctx = multiprocessing.get_context("spawn")  # no fork: the parent holds open databases and threads
+    # no fork of this process: it holds open databases and threads; each worker is forked from a server that
+    # holds neither and imported vlmproprio once (fast_support), instead of a spawned interpreter importing it
+    ctx = fork_context()
     requests_total = stored_total = errors = 0
     for round_ in range(ROUNDS):
         shared = tmp_path / f"shared-cache-{round_}"

@@ -1,7 +1,8 @@
 """Item 1, kill and resume: a live run killed with SIGKILL at seeded random points, then resumed, ends exactly
 where an uninterrupted run ends.
 
-The run is the real CLI (`vlmproprio run`) in a subprocess, answering through the openai backend from the
+The run is the real CLI (`vlmproprio run`) in a process of its own (forked from a server that imported the CLI
+once, fast_support.CliProcess: the imports are not what is killed), answering through the openai backend from the
 loopback server in this process (answers depend only on the request, so every run gets the same ones, and
 the server counts requests, which places kills inside the run rather than only at its start). After each
 kill: every cache entry passes its checksum and holds the uninterrupted run's answer, every transcript file
@@ -17,17 +18,14 @@ from __future__ import annotations
 
 import random
 import sqlite3
-import subprocess
 import time
 from pathlib import Path
 
 import pytest
+from fast_support import CliProcess, forked_cli
 from reliability_support import (
     cache_answers,
     caption_responder,
-    cli,
-    cli_command,
-    cli_env,
     fixture_subset,
     run_file,
     temp_leftovers,
@@ -72,7 +70,7 @@ def _run_args(server: FakeOpenAIServer, fixtures: Path, out: Path, cache: Path) 
     ]
 
 
-def _kill_at(proc: subprocess.Popen, server: FakeOpenAIServer, seen_before: int, n_requests: int, delay: float):
+def _kill_at(proc: CliProcess, server: FakeOpenAIServer, seen_before: int, n_requests: int, delay: float):
     """SIGKILL ``proc`` ``delay`` seconds after the server has received ``n_requests`` of its requests."""
     deadline = time.monotonic() + 60
     while len(server.chat_requests) - seen_before < n_requests and proc.poll() is None:
@@ -89,7 +87,9 @@ def test_sigkill_at_random_points_then_resume_gives_the_uninterrupted_run(tmp_pa
     fixtures = fixture_subset(tmp_path / "fixtures", EPISODES)
     with FakeOpenAIServer(latency_s=0.01, responder=caption_responder) as server:
         t0 = time.monotonic()
-        straight = cli(_run_args(server, fixtures, tmp_path / "straight", tmp_path / "straight-cache"))
+        straight = forked_cli(
+            _run_args(server, fixtures, tmp_path / "straight", tmp_path / "straight-cache"), tmp_path / "logs"
+        )
         straight_s = time.monotonic() - t0
         assert straight.returncode == 0, straight.stderr
         n_requests = len(server.chat_requests)
@@ -121,15 +121,9 @@ def test_sigkill_at_random_points_then_resume_gives_the_uninterrupted_run(tmp_pa
                 else:
                     n, delay = to_ask, rng.uniform(0, 0.15)
                 seen = len(server.chat_requests)
-                proc = subprocess.Popen(
-                    cli_command([str(a) for a in _run_args(server, fixtures, out, cache)]),
-                    env=cli_env(),
-                    stdout=subprocess.DEVNULL,
-                    stderr=subprocess.PIPE,
-                )
+                proc = CliProcess(_run_args(server, fixtures, out, cache), tmp_path / "logs")
                 _kill_at(proc, server, seen, n, delay)
-                err = proc.stderr.read().decode()
-                proc.stderr.close()
+                err = proc.stderr()
                 if proc.returncode == 0:
                     finished_first += 1  # the run won the race: not a kill, not counted
                     break
@@ -152,7 +146,7 @@ def test_sigkill_at_random_points_then_resume_gives_the_uninterrupted_run(tmp_pa
 
             answers = cache_answers(cache)
             seen = len(server.chat_requests)
-            resumed = cli(_run_args(server, fixtures, out, cache))
+            resumed = forked_cli(_run_args(server, fixtures, out, cache), tmp_path / "logs")
             assert resumed.returncode == 0, resumed.stderr
             # nothing already stored is asked again, nothing missing is skipped
             assert len(server.chat_requests) - seen == n_requests - len(answers)
@@ -183,7 +177,7 @@ REF_EPISODES = ["door_00", "bin1_00"]
 REF_KILLS = 12
 
 
-def _kill_when_stored(proc: subprocess.Popen, db: Path, n_entries: int, delay: float) -> None:
+def _kill_when_stored(proc: CliProcess, db: Path, n_entries: int, delay: float) -> None:
     """SIGKILL ``proc`` ``delay`` seconds after the cache database holds ``n_entries`` committed entries."""
     deadline = time.monotonic() + 60
     conn = None
@@ -217,7 +211,7 @@ def test_sigkill_while_answers_are_being_stored(tmp_path, figures):
         head = ["run", "--model", "reference", "--fixtures", str(fixtures), "--conditions", "none,both,primitives"]
         return [*head, "--no-progress", "--out", str(out), "--cache-dir", str(cache)]
 
-    straight = cli(args(tmp_path / "straight", tmp_path / "straight-cache"))
+    straight = forked_cli(args(tmp_path / "straight", tmp_path / "straight-cache"), tmp_path / "logs")
     assert straight.returncode == 0, straight.stderr
     expected_answers = cache_answers(tmp_path / "straight-cache")
     expected_transcripts = transcripts_of(tmp_path / "straight")
@@ -228,7 +222,7 @@ def test_sigkill_while_answers_are_being_stored(tmp_path, figures):
         out, cache = tmp_path / f"r{trial:02d}", tmp_path / f"r{trial:02d}-cache"
         trial += 1
         n = rng.randint(1, len(expected_answers) - 1)
-        proc = subprocess.Popen(cli_command(args(out, cache)), env=cli_env(), stdout=subprocess.DEVNULL)
+        proc = CliProcess(args(out, cache), tmp_path / "logs")
         _kill_when_stored(proc, cache / "cache.db", n, rng.uniform(0, 0.003))
         if proc.returncode == 0:
             continue
@@ -238,7 +232,7 @@ def test_sigkill_while_answers_are_being_stored(tmp_path, figures):
         assert answers.items() <= expected_answers.items()
         assert transcripts_of(out).items() <= expected_transcripts.items()
         mid_stream += 0 < len(answers) < len(expected_answers)
-        resumed = cli(args(out, cache))
+        resumed = forked_cli(args(out, cache), tmp_path / "logs")
         assert resumed.returncode == 0, resumed.stderr
         assert cache_answers(cache) == expected_answers
         assert transcripts_of(out) == expected_transcripts

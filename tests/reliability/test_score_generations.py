@@ -16,20 +16,34 @@ import shutil
 from pathlib import Path
 
 import pytest
-from reliability_support import assert_one_line_error, cache_env_sharing_embeddings, cli, fixture_subset
+from fast_support import forked_cli, in_process_cli
+from reliability_support import assert_one_line_error, cache_env_sharing_embeddings, fixture_subset
 
 RUN_ARGS = ("--model", "reference", "--episodes", "door_00", "--conditions", "none,both", "--frame-stride", "3")
+
+
+_LOGS: list[Path] = []
+
+
+def cli(args, **kw):
+    """The CLI, each command its own process, forked from a server that imported it once (fast_support): about
+    thirty commands here, a third of them reports, whose imports (matplotlib) cost more than their work."""
+    return forked_cli(args, _LOGS[0], **kw)
 
 
 @pytest.fixture(scope="module")
 def scored(tmp_path_factory):
     root = tmp_path_factory.mktemp("generations")
+    _LOGS[:] = [root / "logs"]
     fixtures = fixture_subset(root / "fixtures", ["door_00", "door_01"])
     env = cache_env_sharing_embeddings(root, tmp_path_factory)
     run = root / "run"
     proc = cli(["run", *RUN_ARGS, "--fixtures", fixtures, "--out", run, "--no-progress"], env=env)
     assert proc.returncode == 0, proc.stderr
-    proc = cli(["score", run], env=env)
+    # in this process: this first score embeds the run's captions, and a subprocess spent most of its CPU
+    # importing torch, which the test process imports once
+    with pytest.MonkeyPatch.context() as monkeypatch:
+        proc = in_process_cli(["score", run], monkeypatch, VLMPROPRIO_CACHE=env["VLMPROPRIO_CACHE"])
     assert proc.returncode == 0, proc.stderr
     return root, fixtures, run, env
 

@@ -52,9 +52,12 @@ def test_nul_in_answers_does_not_reach_index_html(tmp_path, figures):
     figures("small items", cases=1, fixed=1)
 
 
-def _pytest(*args: str) -> subprocess.CompletedProcess:
+def _pytest(tmp_path, *args: str) -> subprocess.CompletedProcess:
+    # --basetemp: the inner session's temporary folders in this test's own; by default it would also sweep the
+    # shared /tmp/pytest-of-USER of old sessions at its end (seconds, with many sessions there)
+    basetemp = tmp_path / f"basetemp-{len(list(tmp_path.glob('basetemp-*')))}"
     return subprocess.run(
-        [sys.executable, "-m", "pytest", "benchmark/", "-q", "-p", "no:cacheprovider", *args],
+        [sys.executable, "-m", "pytest", "benchmark/", "-q", "-p", "no:cacheprovider", "--basetemp", basetemp, *args],
         cwd=REPO,
         env=cli_env(),
         capture_output=True,
@@ -64,15 +67,15 @@ def _pytest(*args: str) -> subprocess.CompletedProcess:
     )
 
 
-def test_plugin_empty_episodes_is_a_usage_error(figures):
-    proc = _pytest("--episodes", "", "--model", "reference")
+def test_plugin_empty_episodes_is_a_usage_error(tmp_path, figures):
+    proc = _pytest(tmp_path, "--episodes", "", "--model", "reference")
     assert proc.returncode == 4, proc.stdout[-2000:] + proc.stderr[-2000:]
     assert "--episodes" in proc.stderr and "Traceback" not in proc.stderr
     figures("small items", cases=1, fixed=1)
 
 
-def test_plugin_fails_a_named_model_that_cannot_run(figures):
-    proc = _pytest("--model", "gpt-4o", "--episodes", "door_00", "--conditions", "none", "-k", "test_counts")
+def test_plugin_fails_a_named_model_that_cannot_run(tmp_path, figures):
+    proc = _pytest(tmp_path, "--model", "gpt-4o", "--episodes", "door_00", "--conditions", "none", "-k", "test_counts")
     assert proc.returncode == 1, proc.stdout[-2000:]  # not 0 with "all skipped"
     assert "gpt-4o cannot run in" in proc.stdout and " skipped" not in proc.stdout.splitlines()[-1]
     figures("small items", cases=1, fixed=1)
@@ -110,7 +113,7 @@ def test_plugin_keeps_runs_of_other_selections_apart(tmp_path, figures):
     transcripts into the first session's run folder."""
     runs = tmp_path / "bench"
     for k in ("door_00 and none", "door_01 and none"):
-        proc = _pytest("--model", "reference", "--run-dir", str(runs), "-k", k)
+        proc = _pytest(tmp_path, "--model", "reference", "--run-dir", str(runs), "-k", k)
         assert proc.returncode == 0, proc.stdout[-2000:]
     folders = sorted(p.name for p in runs.iterdir())
     assert len(folders) == 2 and folders[0] == "reference", folders
