@@ -148,7 +148,7 @@ class BenchSession:
         if model in self.failures:
             pytest.fail(self.failures[model], pytrace=False)
         if self.run_root is None:
-            self.shared = _shared_run_root(tmp_path_factory)
+            self.shared = _shared_run_root(self.config, tmp_path_factory)
             self.run_root = self.shared or tmp_path_factory.mktemp("vlmproprio-bench")
         if model not in self.results:
             try:
@@ -182,12 +182,12 @@ class BenchSession:
         )
 
 
-def _shared_run_root(tmp_path_factory: pytest.TempPathFactory) -> Path | None:
+def _shared_run_root(config: pytest.Config, tmp_path_factory: pytest.TempPathFactory) -> Path | None:
     """Under pytest-xdist, one temporary run folder for all the session's workers (their base temp folders'
     common parent), so that a model is run and scored once per session, not once per worker that has benchmark
     tests (test_benchmark.py and test_claims.py land on different workers); None outside xdist, or where there
     is no ``fcntl`` to lock with."""
-    if not os.environ.get("PYTEST_XDIST_WORKER"):
+    if not hasattr(config, "workerinput"):  # what pytest-xdist gives a worker's config
         return None
     try:
         import fcntl  # noqa: F401
