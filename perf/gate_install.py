@@ -39,8 +39,13 @@ def _site_packages_mb(venv: Path) -> float:
     return sum(p.stat().st_size for p in venv.rglob("*") if p.is_file() and not p.is_symlink()) / 1e6
 
 
-def install_and_gate(dest: Path, models: list[str], *, pip_cache: bool = True, extra_pytest: tuple = ()) -> dict:
-    """Clone (copy) the checkout into ``dest``, install it with the bench extra, run the gates; the numbers."""
+def install_and_gate(
+    dest: Path, models: list[str], *, pip_cache: bool = True, compile_pyc: bool = True, extra_pytest: tuple = ()
+) -> dict:
+    """Clone (copy) the checkout into ``dest``, install it with the bench extra, run the gates; the numbers.
+
+    ``compile_pyc=False`` installs with ``pip --no-compile``: pip then skips byte-compiling every installed module
+    (pandas, numpy, ...: about half of the install's CPU time) and Python compiles only the ones the gates import."""
     clone, venv = dest / "clone", dest / "venv"
     t0 = time.perf_counter()
     for name in CLONE:
@@ -62,7 +67,8 @@ def install_and_gate(dest: Path, models: list[str], *, pip_cache: bool = True, e
         return res | {"ok": False, "step": "venv", "output": proc.stderr[-4000:]}
     py = str(venv / "bin" / "python")
     # editable, as scripts/setup.sh installs it: the clone's benchmark/ and fixtures/ are what the gates use
-    t_pip, proc = _run([py, "-m", "pip", "install", "-q", "-e", ".[bench]"], clone, env)
+    no_compile = [] if compile_pyc else ["--no-compile"]
+    t_pip, proc = _run([py, "-m", "pip", "install", "-q", *no_compile, "-e", ".[bench]"], clone, env)
     res |= {"install_s": t_pip}
     if proc.returncode:
         return res | {"ok": False, "step": "pip install", "output": (proc.stdout + proc.stderr)[-4000:]}
@@ -86,13 +92,14 @@ def main(argv=None) -> int:
     ap.add_argument("--model", action="append", help="default: reference")
     ap.add_argument("--keep", type=Path, help="work in this folder and keep it (default: a temporary one)")
     ap.add_argument("--no-cache", action="store_true", help="pip without its download cache (a cold CI runner)")
+    ap.add_argument("--no-compile", action="store_true", help="pip install --no-compile (no .pyc written up front)")
     ap.add_argument("--json", action="store_true", help="print only the result as one JSON line")
     ap.add_argument("--out", type=Path, help="also write the numbers as JSON here")
     args = ap.parse_args(argv)
     models = args.model or ["reference"]
     with tempfile.TemporaryDirectory(prefix="vlmproprio-gates-") as tmp:
         dest = args.keep or Path(tmp)
-        res = install_and_gate(dest, models, pip_cache=not args.no_cache)
+        res = install_and_gate(dest, models, pip_cache=not args.no_cache, compile_pyc=not args.no_compile)
     if args.json:
         print(json.dumps(res, sort_keys=True))
         return 0 if res["ok"] else 1

@@ -7,7 +7,10 @@ markup in a final and a frame caption, a negated expected action, a recovered sc
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
+
+import pytest
 
 from scoring_helpers import fake_spec, prefill_embeddings, write_synthetic_run
 from vlmproprio.transcripts import FrameCaption, SceneCaption, read_transcript, transcript_filename, write_transcript
@@ -64,3 +67,26 @@ def add_model(run: Path, source: str, model: str, final_of: dict[str, str]) -> N
     manifest = json.loads((run / "run.json").read_text())
     manifest["models"] = [*manifest["models"], {"name": model, "slug": model, "pipeline": {"prompt_version": "test"}}]
     (run / "run.json").write_text(json.dumps(manifest, indent=1) + "\n")
+
+
+def shared_report(tmp_path_factory: pytest.TempPathFactory) -> tuple[tuple[Path, Path, list[str]], Path]:
+    """make_run's run with its report written, and the report's index.html: built once per test session, as
+    test_report.py and test_report_browser.py both only read it (a test that changes a run copies it first).
+    Under xdist (``--dist loadscope``) the two modules may run on different workers: the first builds it in the
+    folder the workers share, holding a lock; the other waits for the lock and reuses it."""
+    import fcntl
+
+    from vlmproprio.report import write_report
+
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the session's folder, above each worker's own
+    base, done = root / "shared-report", root / "shared-report.json"
+    with (root / "shared-report.lock").open("w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file is closed
+        if not done.is_file():
+            run, fx, ids = make_run(base)
+            write_report(run)
+            done.write_text(json.dumps([str(run), str(fx), ids]))
+    run, fx, ids = json.loads(done.read_text())
+    return (Path(run), Path(fx), ids), Path(run) / "report" / "index.html"

@@ -10,6 +10,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import re
 import shlex
@@ -72,18 +73,48 @@ def _env(tmp_path: Path) -> dict[str, str]:
     return env
 
 
-def _vp(argv: list[str], cwd: Path, env: dict, timeout: int = 600) -> subprocess.CompletedProcess:
+# One child process runs several commands in turn (each in its own working folder, with the child's clean
+# environment), so that the interpreter start and the imports are paid once, not once per command: what these
+# tests check is the working folder and the environment, which the child gives each command as a process would.
+_BATCH = """
+import contextlib, io, json, os, sys
+results = []
+for cwd, argv in json.loads(sys.argv[1]):
+    os.chdir(cwd)
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = MAIN(argv)
+        except SystemExit as exc:  # argparse's --version and usage errors exit
+            code = exc.code if isinstance(exc.code, int) else (0 if exc.code is None else 1)
+    results.append([code, out.getvalue(), err.getvalue()])
+print(json.dumps(results))
+"""
+VLMPROPRIO_MAIN = "from vlmproprio.cli import main as MAIN\n"
+PYTEST_MAIN = "from pytest import main as MAIN\n"
+
+
+def _batch(main: str, commands: list[tuple[Path, list[str]]], env: dict) -> list[tuple[int, str, str]]:
+    """``(exit code, stdout, stderr)`` of each ``(working folder, argv)`` run by ``main`` in one child process."""
+    payload = json.dumps([[str(cwd), argv] for cwd, argv in commands])
     proc = subprocess.run(
-        [sys.executable, "-m", "vlmproprio.cli", *argv],
-        cwd=cwd,
+        [sys.executable, "-c", main + _BATCH, payload],
         env=env,
         capture_output=True,
         text=True,
-        timeout=timeout,
+        timeout=600,
         check=False,
     )
-    assert proc.returncode == 0, f"vlmproprio {' '.join(argv)} in {cwd}:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}"
-    return proc
+    assert proc.returncode == 0, f"{proc.stdout[-2000:]}\n{proc.stderr[-3000:]}"
+    return [tuple(r) for r in json.loads(proc.stdout.strip().splitlines()[-1])]
+
+
+def _vps(commands: list[tuple[Path, list[str]]], env: dict) -> list[str]:
+    """The standard output of each ``vlmproprio`` command, all run in one child; each must succeed."""
+    results = _batch(VLMPROPRIO_MAIN, commands, env)
+    for (cwd, argv), (code, out, err) in zip(commands, results, strict=True):
+        assert code == 0, f"vlmproprio {' '.join(argv)} in {cwd}:\n{out[-2000:]}\n{err[-2000:]}"
+    return [out for _, out, _ in results]
 
 
 @pytest.mark.slow
@@ -93,7 +124,7 @@ def test_the_command_line_section_runs_from_another_folder(tmp_path: Path) -> No
     commands = [vlmproprio_argv(re.sub(r"\s+#\s.*$", "", x).strip()) for x in block.splitlines() if x.strip()]
     assert commands and all(commands)
     env = _env(tmp_path) | {"VLMPROPRIO_FIXTURES": str(REPO / "fixtures")}
-    outputs = [_vp(argv, tmp_path, env).stdout for argv in commands]
+    outputs = _vps([(tmp_path, argv) for argv in commands], env)
     assert outputs[0].startswith("vlmproprio ")
     assert "reference" in outputs[1] and "replay:" in outputs[1]
     assert (tmp_path / "runs" / "try" / "report" / "index.html").is_file()
@@ -103,9 +134,8 @@ def test_the_command_line_section_runs_from_another_folder(tmp_path: Path) -> No
 
 def test_fixtures_are_found_from_a_subfolder_of_the_repository(tmp_path: Path) -> None:
     env = _env(tmp_path)
-    out = _vp(["verify"], REPO / "benchmark", env).stdout
+    out, models = _vps([(REPO / "benchmark", ["verify"]), (REPO / "docs", ["models", "--model", "tiny-qwen2-vl"])], env)
     assert "22" in out or "episodes" in out
-    models = _vp(["models", "--model", "tiny-qwen2-vl"], REPO / "docs", env).stdout
     assert f"cassette: {REPO / 'fixtures' / 'responses' / 'tiny-qwen2-vl.jsonl'}" in models
 
 
@@ -118,16 +148,23 @@ def test_outside_any_repository_the_error_says_what_to_do(tmp_path: Path) -> Non
     assert proc.returncode == 0 or "pass --fixtures DIR or set VLMPROPRIO_FIXTURES" in proc.stderr
 
 
+@pytest.fixture(scope="module")
+def collected(tmp_path_factory) -> dict[str, tuple[int, str, str]]:
+    """Every README ``pytest benchmark/ ...`` line collected from a temporary folder (``pytest <repo>/benchmark
+    ...``), all in one child process (one ``pytest.main`` per line): the line -> (exit code, stdout, stderr)."""
+    where = tmp_path_factory.mktemp("collect")
+    argvs = [
+        [str(REPO / "benchmark"), *shlex.split(line)[2:], "--collect-only", "-q", "-p", "no:cacheprovider"]
+        for line in PYTEST_LINES
+    ]  # after "pytest benchmark/"
+    return dict(zip(PYTEST_LINES, _batch(PYTEST_MAIN, [(where, a) for a in argvs], _env(where)), strict=True))
+
+
 @pytest.mark.parametrize("line", PYTEST_LINES)
-def test_every_readme_benchmark_command_collects_from_another_folder(line: str, tmp_path: Path) -> None:
-    args = shlex.split(line)[2:]  # after "pytest benchmark/"
-    cmd = [sys.executable, "-m", "pytest", str(REPO / "benchmark"), *args, "--collect-only", "-q"]
-    env = _env(tmp_path)
-    proc = subprocess.run(
-        [*cmd, "-p", "no:cacheprovider"], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300
-    )
-    assert proc.returncode == 0, f"{line}:\n{proc.stdout[-2000:]}\n{proc.stderr[-2000:]}"
-    assert "test_counts[" in proc.stdout
+def test_every_readme_benchmark_command_collects_from_another_folder(line: str, collected) -> None:
+    code, out, err = collected[line]
+    assert code == 0, f"{line}:\n{out[-2000:]}\n{err[-2000:]}"
+    assert "test_counts[" in out
 
 
 def test_every_environment_variable_read_is_in_the_readme() -> None:

@@ -10,7 +10,7 @@ import shutil
 import pytest
 from PIL import Image
 
-from report_helpers import CONDS, EVIL, NEGATED_FINAL, add_model, make_run, score_synthetic
+from report_helpers import CONDS, EVIL, NEGATED_FINAL, add_model, make_run, score_synthetic, shared_report
 from scoring_helpers import prefill_embeddings
 from vlmproprio.report import ReportError, compare_runs, load_run_scores, write_report
 from vlmproprio.report.page import highlight
@@ -30,13 +30,19 @@ PLOTS = (
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    return make_run(tmp_path_factory.mktemp("report"))
+def shared(tmp_path_factory):
+    """The run and its report, shared with test_report_browser.py (built once per session; read only here)."""
+    return shared_report(tmp_path_factory)
 
 
 @pytest.fixture(scope="module")
-def page(run):
-    index = write_report(run[0])
+def run(shared):
+    return shared[0]
+
+
+@pytest.fixture(scope="module")
+def page(shared):
+    index = shared[1]
     return index, index.read_text(encoding="utf-8")
 
 

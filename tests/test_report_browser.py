@@ -14,8 +14,7 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from report_helpers import make_run
-from vlmproprio.report import write_report
+from report_helpers import shared_report
 
 for _module in ("matplotlib", "jinja2"):
     pytest.importorskip(_module, reason="reports need the [report] extra: pip install 'vlmproprio[report]'")
@@ -91,10 +90,8 @@ def dom(browser: str, profile: Path, page: Path) -> DomSummary:
 
 @pytest.fixture(scope="module")
 def copied_report(tmp_path_factory):
-    base = tmp_path_factory.mktemp("browser")
-    run, _, _ = make_run(base)
-    index = write_report(run)
-    copy = base / "elsewhere" / "report"
+    _, index = shared_report(tmp_path_factory)  # test_report.py's run and report, built once per session
+    copy = tmp_path_factory.mktemp("browser") / "elsewhere" / "report"
     shutil.copytree(index.parent, copy)  # only the report folder: it must work on its own
     return copy / "index.html"
 

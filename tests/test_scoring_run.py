@@ -172,13 +172,12 @@ def test_scores_are_bit_identical_across_runs_and_processes(tables, small_run):
 
 def test_a_cached_run_imports_no_torch(tmp_path, monkeypatch):
     """The default encoder's spec (name, revision) and the whole scoring path, with torch never imported."""
+    from vlmproprio.embeddings import encoder_spec  # light: the spec names the files, loads nothing
+
     run, fx = tmp_path / "run", tmp_path / "fx"
     write_synthetic_run(run, fx, n_door=1, n_per_bin=1, n_frames=10, conditions=("none", "both"))
-    code = "from vlmproprio.embeddings import encoder_spec; print(encoder_spec().key)"
-    env = {**os.environ, "PYTHONPATH": str(SRC)}
-    key = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     monkeypatch.setenv("VLMPROPRIO_CACHE", str(tmp_path / "cache"))  # the subprocess inherits it
-    prefill_embeddings(run, key.stdout.strip(), tmp_path / "cache" / "embeddings")
+    prefill_embeddings(run, encoder_spec().key, tmp_path / "cache" / "embeddings")
     assert _run_scoring_subprocess(run, fake=False) == {"heavy": [], "computed": 0}
 
 
@@ -199,16 +198,17 @@ def test_bad_run_dirs_are_clean_errors(tmp_path):
 
 def test_cli_score(small_run, capsys):
     from vlmproprio.cli import main
+    from vlmproprio.embeddings import encoder_spec
 
     run, _ = small_run
-    code = "from vlmproprio.embeddings import encoder_spec; print(encoder_spec().key)"
-    env = {**os.environ, "PYTHONPATH": str(SRC)}
-    key = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     cache = run.parent / "cli-cache"
-    prefill_embeddings(run, key.stdout.strip(), cache_dir=cache)
+    # --embedding-cache names the cache root; the vectors live in its embeddings/ folder. Prefilled there, the
+    # command scores with no encoder loaded (prefilled in the root itself, it loaded and ran the real one).
+    prefill_embeddings(run, encoder_spec().key, cache_dir=cache / "embeddings")
     assert main(["score", str(run), "--embedding-cache", str(cache)]) == 0
     out = capsys.readouterr().out
     assert "scored 28 transcripts" in out
+    assert ", 0 computed)" in out  # every vector came from the --embedding-cache given
     assert "verdict synthetic: trajectory_both_vs_none: both > none on final_trajectory_correct (all): " in out
     assert main(["score", str(run.parent / "missing")]) == 2
     assert "run directory not found" in capsys.readouterr().err

@@ -247,27 +247,34 @@ def test_shipped_sidecars_cover_the_benchmark(model):
 
 def test_replay_and_score_import_no_torch(tmp_path):
     """The gates' path with torch, transformers, sentence-transformers and the encoder package unimportable."""
+    # both models in one child (one interpreter start and import): each is replayed and scored in turn, its
+    # output after a line naming it; neither may import a heavy module
     code = (
         "import sys\n"
         f"for m in {HEAVY!r}: sys.modules[m] = None\n"
         "from vlmproprio.cli import main\n"
-        "rc = main(sys.argv[1:4] + ['--mode', 'replay', '--out', sys.argv[4], '--no-progress', '--episodes', 'door_00', 'bin1_00'])\n"
-        "rc = rc or main(['score', sys.argv[4]])\n"
+        "rc = 0\n"
+        "for model, out in zip(sys.argv[1::2], sys.argv[2::2]):\n"
+        "    print(f'@@ {model}', flush=True)\n"
+        "    args = ['run', '--model', model, '--mode', 'replay', '--out', out, '--no-progress']\n"
+        "    rc = rc or main([*args, '--episodes', 'door_00', 'bin1_00']) or main(['score', out])\n"
         "sys.exit(rc or int(any(sys.modules.get(m) is not None for m in " + repr(HEAVY) + ")))\n"
     )
     env = {**os.environ, "VLMPROPRIO_CACHE": str(tmp_path / "cache")}
-    for model in ("reference", "tiny-qwen2-vl"):
-        out = tmp_path / model
-        res = subprocess.run(
-            [sys.executable, "-c", code, "run", "--model", model, str(out)],
-            cwd=ROOT,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=300,
-        )
-        assert res.returncode == 0, res.stderr[-2000:]
-        assert "0 cached, 0 computed" in res.stdout, res.stdout
+    models = ("reference", "tiny-qwen2-vl")
+    res = subprocess.run(
+        [sys.executable, "-c", code, *(x for m in models for x in (m, str(tmp_path / m)))],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert res.returncode == 0, res.stderr[-2000:]
+    parts = res.stdout.split("@@ ")[1:]
+    assert [p.split("\n", 1)[0] for p in parts] == list(models), res.stdout
+    for part in parts:
+        assert "0 cached, 0 computed" in part, res.stdout
 
 
 def _frame_lines(body: dict) -> str:

@@ -22,7 +22,10 @@ Session state lives in ``config.stash``.
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -129,6 +132,7 @@ class BenchSession:
     needed: dict[ModelRef, tuple[set[str], set[str]]] = field(default_factory=dict)
     results: dict[ModelRef, ModelResult] = field(default_factory=dict)
     failures: dict[ModelRef, str] = field(default_factory=dict)
+    shared: Path | None = None  # the run folder the xdist workers share (see _shared_run_root)
 
     def need(self, model: ModelRef, episodes, conditions) -> None:
         eps, conds = self.needed.setdefault(model, (set(), set()))
@@ -144,7 +148,8 @@ class BenchSession:
         if model in self.failures:
             pytest.fail(self.failures[model], pytrace=False)
         if self.run_root is None:
-            self.run_root = tmp_path_factory.mktemp("vlmproprio-bench")
+            self.shared = _shared_run_root(self.config, tmp_path_factory)
+            self.run_root = self.shared or tmp_path_factory.mktemp("vlmproprio-bench")
         if model not in self.results:
             try:
                 self.results[model] = self._run(model)
@@ -165,7 +170,50 @@ class BenchSession:
         eps, conds = self.needed.get(model, (set(self.episodes), set(self.conditions)))
         assert self.run_root is not None
         conditions = [c for c in self.conditions if c in conds]  # the session's order
-        return run_and_score(model, self.fixtures, self.mode, eps, conditions, self.run_root)
+        run_root = self.run_root
+        if self.shared is None:
+            return run_and_score(model, self.fixtures, self.mode, eps, conditions, run_root)
+        selection = json.dumps([sorted(eps), conditions, self.mode, str(self.fixtures)])
+        # one lock per model (its runs share run_root/<slug>), one result per selection of cells
+        lock = run_root / f"{model.slug}.lock"
+        done = run_root / f"{model.slug}-{hashlib.sha256(selection.encode()).hexdigest()[:12]}.pickle"
+        return _once_per_session(
+            lock, done, lambda: run_and_score(model, self.fixtures, self.mode, eps, conditions, run_root)
+        )
+
+
+def _shared_run_root(config: pytest.Config, tmp_path_factory: pytest.TempPathFactory) -> Path | None:
+    """Under pytest-xdist, one temporary run folder for all the session's workers (their base temp folders'
+    common parent), so that a model is run and scored once per session, not once per worker that has benchmark
+    tests (test_benchmark.py and test_claims.py land on different workers); None outside xdist, or where there
+    is no ``fcntl`` to lock with."""
+    if not hasattr(config, "workerinput"):  # what pytest-xdist gives a worker's config
+        return None
+    try:
+        import fcntl  # noqa: F401
+    except ImportError:
+        return None
+    root = tmp_path_factory.getbasetemp().parent / "vlmproprio-bench"
+    root.mkdir(parents=True, exist_ok=True)
+    return root
+
+
+def _once_per_session(lock: Path, done: Path, compute: Callable[[], ModelResult]) -> ModelResult:
+    """``compute()`` by the first worker to get here, holding an exclusive lock on ``lock``, its result pickled
+    to ``done``; a worker that comes later waits for the lock and loads that (the same code of the same session
+    wrote it). A failure writes nothing: the next worker tries again and fails the same way."""
+    import fcntl
+    import pickle
+
+    with lock.open("w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)  # released when the file is closed
+        if done.is_file():
+            return pickle.loads(done.read_bytes())
+        result = compute()
+        part = done.with_name(done.name + "-part")
+        part.write_bytes(pickle.dumps(result))
+        part.replace(done)
+        return result
 
 
 def _session(config: pytest.Config) -> BenchSession:
