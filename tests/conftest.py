@@ -6,6 +6,7 @@ import io
 import os
 import shutil
 import tempfile
+from pathlib import Path
 
 # Before anything imports torch or huggingface_hub: no network, one thread (bit-identical floats).
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
@@ -18,6 +19,8 @@ import numpy as np
 import pytest
 
 from vlmproprio.chat import ChatRequest, GenerationConfig, ImagePart, Message, RequestTag, TextPart
+
+SESSION_CACHE = Path(os.environ["VLMPROPRIO_CACHE"])
 
 
 def png_bytes(seed: int, size: int = 64) -> bytes:
@@ -69,11 +72,19 @@ def torch_one_thread():
 
 
 @pytest.fixture(scope="session")
-def tiny_qwen2vl_dir(tmp_path_factory, torch_one_thread):
-    """A tiny random Qwen2-VL checkpoint, built once per test session (about 1 MB, well under a second)."""
-    from vlmproprio.backends.tiny import build_tiny_model
+def tiny_model(torch_one_thread):
+    """The tiny random checkpoint of a family (about 1 MB), built once per test session (per xdist worker) in the
+    session's cache root ($VLMPROPRIO_CACHE/models), where the registry's ``tiny-*`` models look for it: a test
+    that runs ``tiny-qwen2-vl`` by name and asks for this fixture finds the build instead of making its own."""
+    from vlmproprio.backends.tiny import ensure_tiny_model
 
-    return build_tiny_model("qwen2-vl", tmp_path_factory.mktemp("tiny-qwen2-vl"))
+    return lambda family: ensure_tiny_model(family, SESSION_CACHE)
+
+
+@pytest.fixture(scope="session")
+def tiny_qwen2vl_dir(tiny_model):
+    """The tiny random Qwen2-VL checkpoint (``tiny-qwen2-vl``), built once per test session."""
+    return tiny_model("qwen2-vl")
 
 
 @pytest.fixture(scope="session")
@@ -94,7 +105,7 @@ def vlmproprio_home(tmp_path, monkeypatch):
 
 
 def pytest_sessionfinish(session, exitstatus) -> None:
-    shutil.rmtree(os.environ["VLMPROPRIO_CACHE"], ignore_errors=True)
+    shutil.rmtree(SESSION_CACHE, ignore_errors=True)
 
 
 def pytest_collection_modifyitems(config, items) -> None:

@@ -102,11 +102,11 @@ def test_processor_fallback_patches_nothing(tiny_qwen2vl_backend):
 
 
 @pytest.mark.parametrize("family", ["qwen2.5-vl", "llava"])
-def test_other_tiny_families(family, tmp_path, torch_one_thread, request_factory, png_factory):
+def test_other_tiny_families(family, tiny_model, request_factory, png_factory):
     from vlmproprio.backends.hf import HFBackend
-    from vlmproprio.backends.tiny import build_tiny_model
 
-    backend = HFBackend(build_tiny_model(family, tmp_path / family), max_batch_size=3, threads=1)
+    # the session's build (test_transformers_serve serves the same LLaVA when it runs in this process)
+    backend = HFBackend(tiny_model(family), max_batch_size=3, threads=1)
     reqs = mixed_requests(request_factory, png_factory, 3)
     batched = backend.generate(reqs)
     single = [backend.generate([r])[0] for r in reqs]

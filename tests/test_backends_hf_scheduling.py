@@ -158,21 +158,36 @@ def test_identity_ignores_how_answers_are_computed(make_backend):
     assert make_backend(static_cache=True, max_batch_size=64).identity() == make_backend().identity()
 
 
-@pytest.mark.slow
-def test_the_throughput_benchmark_runs_on_the_tiny_model(tmp_path, vlmproprio_home):
-    """perf/gpu_throughput.py --tiny, cut down: the GPU benchmark's code path must not rot untested."""
-    import json
-    import os
-    import subprocess
+def run_perf_script(name: str, argv: list[str], monkeypatch) -> int:
+    """``perf/<name>.py``'s ``main(argv)`` in this process: torch and transformers are loaded here already (a
+    subprocess spent ~6 s of CPU importing them again), and what is tested is the script's code, not its process.
+    perf/ goes on sys.path for the script's ``from _common import ...``; sys.path is restored afterwards."""
+    import importlib.util
     import sys
     from pathlib import Path
 
-    root = Path(__file__).resolve().parents[1]
+    perf = Path(__file__).resolve().parents[1] / "perf"
+    monkeypatch.syspath_prepend(str(perf))
+    monkeypatch.setitem(sys.modules, "_common", None)  # recorded, so the import below is undone afterwards
+    del sys.modules["_common"]
+    spec = importlib.util.spec_from_file_location(f"perf_{name}", perf / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.main(argv)
+
+
+@pytest.mark.slow
+def test_the_throughput_benchmark_runs_on_the_tiny_model(tmp_path, tiny_qwen2vl_dir, monkeypatch):
+    """perf/gpu_throughput.py --tiny, cut down: the GPU benchmark's code path must not rot untested."""
+    import json
+
+    from vlmproprio.backends.tiny import tiny_model_dir
+
+    assert tiny_qwen2vl_dir == tiny_model_dir("qwen2-vl")  # the script's ensure_tiny_model finds the session's
     out = tmp_path / "t.json"
-    cmd = [sys.executable, str(root / "perf" / "gpu_throughput.py"), "--tiny", "--out", str(out)]
-    cmd += ["--requests", "4", "--single", "2", "--batch-sizes", "2", "4", "--new-tokens", "4"]
-    cmd += ["--p2-requests", "2", "--p3-requests", "1"]
-    subprocess.run(cmd, check=True, capture_output=True, env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=300)
+    argv = ["--tiny", "--out", str(out), "--requests", "4", "--single", "2", "--batch-sizes", "2", "4"]
+    argv += ["--new-tokens", "4", "--p2-requests", "2", "--p3-requests", "1"]
+    assert run_perf_script("gpu_throughput", argv, monkeypatch) == 0
     doc = json.loads(out.read_text())
     rows = doc["throughput"]
     assert [r["mode"] for r in rows] == ["one-at-a-time", "live b=2 static", "live b=4 static"]

@@ -23,28 +23,33 @@ from vlmproprio.report.tables import report_tables, to_markdown
 from vlmproprio.testing.openai_server import FakeOpenAIServer
 
 
+def prefilled_cache(run: Path, root: Path) -> Path:
+    """A cache root whose embeddings/ holds a vector for every caption of ``run``: scoring with ``--cache-dir
+    root`` needs no encoder (a score reads ROOT/embeddings; the judge's answers go to ROOT/cache.db)."""
+    prefill_embeddings(run, encoder_spec().key, cache_dir=root / "embeddings")
+    return root
+
+
 @pytest.fixture
 def small_run(tmp_path):
     run, fx = tmp_path / "run", tmp_path / "fixtures"
     write_synthetic_run(run, fx, n_door=1, n_per_bin=1, n_frames=8, conditions=("none", "both"))
-    emb = tmp_path / "emb"
-    prefill_embeddings(run, encoder_spec().key, cache_dir=emb)  # no encoder needed to score
-    return run, fx, emb
+    return run, fx, prefilled_cache(run, tmp_path / "emb")
 
 
 def judged(run: Path) -> dict:
     return json.loads((run / "scores" / "judge.json").read_text())
 
 
-def score(run, emb, *extra) -> int:
-    return main(["score", str(run), "--embedding-cache", str(emb), *extra])
+def score(run, cache_root, *extra) -> int:
+    return main(["score", str(run), "--cache-dir", str(cache_root), *extra])
 
 
 @pytest.mark.slow
-def test_tiny_judge_live_then_replay_gives_identical_verdicts(small_run, tmp_path, vlmproprio_home, capsys):
-    run, fx, emb = small_run
-    cache = ["--cache-dir", str(tmp_path / "responses-cache")]
-    assert score(run, emb, "--judge", "tiny-qwen2-vl", "--judge-mode", "record", *cache) == 0
+def test_tiny_judge_live_then_replay_gives_identical_verdicts(small_run, tmp_path, tiny_qwen2vl_dir, capsys):
+    run, fx, emb = small_run  # tiny-qwen2-vl: the session's build (tiny_qwen2vl_dir), not one of its own
+    cache = prefilled_cache(run, tmp_path / "responses-cache")
+    assert score(run, cache, "--judge", "tiny-qwen2-vl", "--judge-mode", "record") == 0
     recorded = judged(run)
     assert "rubric vs judge kappa" in capsys.readouterr().out
     cassette = read_cassette(fx / "responses" / "tiny-qwen2-vl.jsonl")  # the model's cassette, as captioning's
@@ -54,7 +59,7 @@ def test_tiny_judge_live_then_replay_gives_identical_verdicts(small_run, tmp_pat
     assert score(run, emb, "--judge", "tiny-qwen2-vl", "--judge-mode", "replay") == 0
     assert judged(run) == recorded
     # live again: every answer from the response cache, still the same
-    assert score(run, emb, "--judge", "tiny-qwen2-vl", "--judge-mode", "live", *cache) == 0
+    assert score(run, cache, "--judge", "tiny-qwen2-vl", "--judge-mode", "live") == 0
     assert judged(run) == recorded
 
 
@@ -74,10 +79,10 @@ def _verdict(body: dict) -> str:
 def test_openai_judge_replays_and_the_report_shows_kappa(small_run, tmp_path, monkeypatch):
     run, _, emb = small_run
     monkeypatch.setenv("OPENAI_API_KEY", "test-key")
-    cache = ["--cache-dir", str(tmp_path / "responses-cache")]
+    cache = prefilled_cache(run, tmp_path / "responses-cache")
     with FakeOpenAIServer(responder=_verdict) as server:
-        args = ["--judge", "openai:rule-judge", "--base-url", server.base_url, "--judge-mode", "record", *cache]
-        assert score(run, emb, *args) == 0
+        args = ["--judge", "openai:rule-judge", "--base-url", server.base_url, "--judge-mode", "record"]
+        assert score(run, cache, *args) == 0
         asked = len(server.requests)
     recorded = judged(run)
     assert 0 < asked <= 10 and recorded["agreement"]["n"] == 10

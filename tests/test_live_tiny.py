@@ -21,8 +21,12 @@ MODEL = "tiny-qwen2-vl"
 
 
 @pytest.mark.slow
-def test_tiny_model_live_matches_its_cassette(tmp_path: Path) -> None:
+def test_tiny_model_live_matches_its_cassette(tmp_path: Path, tiny_qwen2vl_dir: Path) -> None:
     from vlmproprio.backends.registry import BackendSettings
+    from vlmproprio.backends.tiny import tiny_model_dir
+
+    # the run builds nothing: the registry's tiny-qwen2-vl is the session's build (the build is tested elsewhere)
+    assert tiny_qwen2vl_dir == tiny_model_dir("qwen2-vl")
 
     cassette = read_cassette(FIXTURES / "responses" / f"{MODEL}.jsonl")
     # images only, images + both states, states only: every kind of prompt the model can get

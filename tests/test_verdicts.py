@@ -143,32 +143,39 @@ def test_sanity_warnings_fire_on_made_up_outputs():
     assert not [x for x in w if x["model"] == "good"]
 
 
-def _replayed_outputs(model: str, tmp_path: Path) -> ModelOutputs:
-    """The model's captions from its committed cassette / rules (no embeddings needed)."""
+def _replayed_outputs(models: tuple[str, ...], tmp_path: Path) -> dict[str, ModelOutputs]:
+    """Each model's captions from its committed cassette / rules (no embeddings needed), all from one replay run
+    (as `vlmproprio run --model a,b,c`: the fixtures are loaded and verified once, not once per model)."""
     from vlmproprio.conditions import parse_conditions
     from vlmproprio.episodes import load_episodes
     from vlmproprio.runner import RunPlan, run
     from vlmproprio.scoring import expectation_for, load_lexicon, score_text
     from vlmproprio.transcripts import read_transcripts
 
-    out = tmp_path / model
-    run(RunPlan(models=(model,), conditions=tuple(parse_conditions("all")), fixtures=FIXTURES, out=out,
-                mode="replay", progress=False))  # fmt: skip
+    out = tmp_path / "replay"
+    runs = run(RunPlan(models=models, conditions=tuple(parse_conditions("all")), fixtures=FIXTURES, out=out,
+                       mode="replay", progress=False))  # fmt: skip
     eps = {e.episode_id: e for e in load_episodes(FIXTURES)}
-    o = ModelOutputs()
-    for t in read_transcripts(out):
-        lex = load_lexicon(t.task)
-        present = [f.text for f in t.frames if f.status != "missing" and f.text.strip()]
-        o.frame_captions += present
-        o.cell_distinct.append(len(set(present)) / len(t.frames))
-        o.frames_missing += len(eps[t.episode_id].frames) - len(present)
-        o.all_captions += [*present, *(s.text for s in t.scenes), t.final]
-        o.final_hits.append(score_text(t.final, expectation_for(eps[t.episode_id], lex), lex).hits)
-    return o
+    outputs = {}
+    for r in runs:
+        o = outputs[r.model.name] = ModelOutputs()
+        for t in read_transcripts(out, r.model.slug):
+            lex = load_lexicon(t.task)
+            present = [f.text for f in t.frames if f.status != "missing" and f.text.strip()]
+            o.frame_captions += present
+            o.cell_distinct.append(len(set(present)) / len(t.frames))
+            o.frames_missing += len(eps[t.episode_id].frames) - len(present)
+            o.all_captions += [*present, *(s.text for s in t.scenes), t.final]
+            o.final_hits.append(score_text(t.final, expectation_for(eps[t.episode_id], lex), lex).hits)
+    return outputs
 
 
 def test_tiny_random_model_is_flagged_and_the_reference_captioner_is_not(tmp_path):
-    outputs = {m: _replayed_outputs(m, tmp_path) for m in ("reference", "reference-state", "tiny-qwen2-vl")}
+    outputs = _replayed_outputs(("reference", "reference-state", "tiny-qwen2-vl"), tmp_path)
+    assert list(outputs) == ["reference", "reference-state", "tiny-qwen2-vl"]
+    from vlmproprio.conditions import CONDITIONS
+
+    assert all(len(o.cell_distinct) == 22 * len(CONDITIONS) for o in outputs.values())  # every cell, per model
     w = sanity_warnings(outputs, 5)
     kinds = {m: {x["kind"] for x in w if x["model"] == m} for m in outputs}
     assert {"gibberish", "near-constant"} <= kinds["tiny-qwen2-vl"]
