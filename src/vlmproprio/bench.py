@@ -17,7 +17,7 @@ from vlmproprio.backends.registry import Availability, model_availability
 from vlmproprio.backends.settings import BackendSettings
 from vlmproprio.conditions import parse_conditions
 from vlmproprio.evaluation import score_run
-from vlmproprio.models import ModelRef
+from vlmproprio.models import ModelRef, resolve_model
 from vlmproprio.runner import RunPlan, read_run_file, run
 
 # pinned: bit-identical CPU runs of local models, whatever the machine's core count
@@ -39,6 +39,34 @@ class ModelResult:
     @property
     def name(self) -> str:
         return self.model.name
+
+    def to_json(self) -> str:
+        """This result as JSON text (floats as their shortest repr, NaN as NaN: the same numbers come back)."""
+        return json.dumps(
+            {
+                "model": self.model.name,
+                "run_dir": str(self.run_dir),
+                "rows": [[list(k), v] for k, v in self.rows.items()],
+                "sweep": [[list(k), v] for k, v in self.sweep.items()],
+                "paired": self.paired,
+                "episodes": list(self.episodes),
+                "conditions": list(self.conditions),
+            }
+        )
+
+    @classmethod
+    def from_json(cls, text: str) -> ModelResult:
+        """The result :meth:`to_json` wrote (data only: nothing in it is run)."""
+        doc = json.loads(text)
+        return cls(
+            model=resolve_model(doc["model"]),
+            run_dir=Path(doc["run_dir"]),
+            rows={tuple(k): v for k, v in doc["rows"]},
+            sweep={tuple(k): v for k, v in doc["sweep"]},
+            paired=doc["paired"],
+            episodes=tuple(doc["episodes"]),
+            conditions=tuple(doc["conditions"]),
+        )
 
 
 def availability(model: ModelRef, mode: str, fixtures: Path) -> Availability:

@@ -176,7 +176,7 @@ class BenchSession:
         selection = json.dumps([sorted(eps), conditions, self.mode, str(self.fixtures)])
         # one lock per model (its runs share run_root/<slug>), one result per selection of cells
         lock = run_root / f"{model.slug}.lock"
-        done = run_root / f"{model.slug}-{hashlib.sha256(selection.encode()).hexdigest()[:12]}.pickle"
+        done = run_root / f"{model.slug}-{hashlib.sha256(selection.encode()).hexdigest()[:12]}.json"
         return _once_per_session(
             lock, done, lambda: run_and_score(model, self.fixtures, self.mode, eps, conditions, run_root)
         )
@@ -199,19 +199,20 @@ def _shared_run_root(config: pytest.Config, tmp_path_factory: pytest.TempPathFac
 
 
 def _once_per_session(lock: Path, done: Path, compute: Callable[[], ModelResult]) -> ModelResult:
-    """``compute()`` by the first worker to get here, holding an exclusive lock on ``lock``, its result pickled
-    to ``done``; a worker that comes later waits for the lock and loads that (the same code of the same session
-    wrote it). A failure writes nothing: the next worker tries again and fails the same way."""
+    """``compute()`` by the first worker to get here, holding an exclusive lock on ``lock``, its result written
+    to ``done`` as JSON; a worker that comes later waits for the lock and reads that. A failure writes nothing:
+    the next worker tries again and fails the same way."""
     import fcntl
-    import pickle
+
+    from vlmproprio.bench import ModelResult
 
     with lock.open("w") as held:
         fcntl.flock(held, fcntl.LOCK_EX)  # released when the file is closed
         if done.is_file():
-            return pickle.loads(done.read_bytes())
+            return ModelResult.from_json(done.read_text(encoding="utf-8"))
         result = compute()
         part = done.with_name(done.name + "-part")
-        part.write_bytes(pickle.dumps(result))
+        part.write_text(result.to_json(), encoding="utf-8")
         part.replace(done)
         return result
 
