@@ -12,16 +12,21 @@ import contextlib
 import io
 import subprocess
 import threading
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 
-def cli_in_process(args: Sequence[object]) -> subprocess.CompletedProcess:
-    """``vlmproprio ARGS`` through ``cli.main`` in this process, its output captured like a subprocess's."""
+def cli_in_process(args: Sequence[object], env: Mapping[str, str] | None = None) -> subprocess.CompletedProcess:
+    """``vlmproprio ARGS`` through ``cli.main`` in this process, its output captured like a subprocess's;
+    ``env``: environment variables set for the call only (e.g. ``VLMPROPRIO_CACHE``)."""
+    import pytest
+
     from vlmproprio.cli import main
 
     argv = [str(a) for a in args]
     out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+    with pytest.MonkeyPatch.context() as mp, contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        for name, value in (env or {}).items():
+            mp.setenv(name, value)
         try:
             code = main(argv)
         except SystemExit as exc:  # argparse's usage errors and --help exit
