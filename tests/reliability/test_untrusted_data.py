@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fault_support import cli_in_process
 from reliability_support import (
     REPO,
     assert_one_line_error,
@@ -158,7 +159,7 @@ def reference_run(tmp_path):
     fixtures = fixture_subset(tmp_path / "fixtures", ["door_04"])
     args = ["run", "--model", "reference", "--fixtures", fixtures, "--conditions", "ee", "--no-progress"]
     args += ["--cache-dir", tmp_path / "cache"]
-    proc = cli([*args, "--out", tmp_path / "clean"])
+    proc = cli_in_process([*args, "--out", tmp_path / "clean"])  # the clean run: its output is not checked
     assert proc.returncode == 0, proc.stderr
     return tmp_path, args
 
@@ -239,8 +240,6 @@ def test_report_renders_html_in_captions_as_text(tmp_path, monkeypatch):
 
     The CLI runs in this process: what is checked is the pages it writes, and scoring in a subprocess imported
     torch and the encoder again (~10 CPU s) where the test session usually has them already."""
-    from fault_support import cli_in_process
-
     from vlmproprio.testing.openai_server import FakeOpenAIServer
 
     pytest.importorskip("openai", reason="the run goes through the openai backend")
