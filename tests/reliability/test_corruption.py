@@ -12,6 +12,10 @@
   through the CLI never reads the response cache (only the committed cassette); that a corrupt entry is fatal
   for a replaying ``Answerer`` is checked in
   tests/test_cache.py::test_corrupt_entry_is_recomputed_in_live_mode_and_fatal_in_replay.
+
+The CLI runs in this process (``cli_in_process``) where what is checked is its one error line and the files:
+a subprocess cost ~1.5 CPU s of imports per command. The cache-entry test's damaged run stays a subprocess:
+the warnings it counts are log records, which only a process of its own prints to stderr.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import zlib
 from pathlib import Path
 
 import pytest
+from fault_support import cli_in_process
 from reliability_support import (
     assert_one_line_error,
     cache_answers,
@@ -62,7 +67,7 @@ def _record(server: FakeOpenAIServer, fixtures: Path, tmp: Path) -> Path:
     """A cassette recorded through the CLI into <fixtures>/responses/ (registered in the manifest)."""
     args = ["run", "--model", MODEL, "--mode", "record", "--base-url", server.base_url, "--fixtures", fixtures]
     args += ["--episodes", "door_00", "--conditions", "none,both", "--frame-stride", "2", "--no-progress"]
-    proc = cli([*args, "--out", tmp / "record-run", "--cache-dir", tmp / "record-cache"])
+    proc = cli_in_process([*args, "--out", tmp / "record-run", "--cache-dir", tmp / "record-cache"])
     assert proc.returncode == 0, proc.stderr
     path = fixtures / "responses" / "openai_fake-vlm.jsonl"
     assert path.is_file() and "responses/openai_fake-vlm.jsonl" in read_manifest(fixtures)
@@ -139,11 +144,12 @@ def test_the_cli_names_a_damaged_fixture_file(recorded_fixtures, rel):
     path = recorded_fixtures / rel
     original, _ = _flip(path, random.Random(rel))
     try:
-        proc = cli(["verify", "--fixtures", recorded_fixtures])
+        proc = cli_in_process(["verify", "--fixtures", recorded_fixtures])
         assert_one_line_error(proc, str(path), "sha256 differs")
         if rel.startswith("episodes/"):
             episode = rel.split("/")[1]
-            proc = cli(["run", "--model", "reference", "--fixtures", recorded_fixtures, "--episodes", episode])
+            run = ["run", "--model", "reference", "--fixtures", recorded_fixtures, "--episodes", episode]
+            proc = cli_in_process(run)
             assert_one_line_error(proc, str(path), "sha256 differs")
     finally:
         path.write_bytes(original)
@@ -191,12 +197,12 @@ def test_a_damaged_cassette_line_stops_a_replay_with_one_line(recorded_fixtures,
     args = ["run", "--model", MODEL, "--mode", "replay", "--fixtures", recorded_fixtures, "--episodes", "door_00"]
     args += ["--conditions", "none,both", "--frame-stride", "2", "--no-progress", "--out", tmp_path / "replay"]
     try:
-        proc = cli(args)
+        proc = cli_in_process(args)
         assert_one_line_error(proc, f"{path}:4: bad answer line: checksum mismatch")
         assert not (tmp_path / "replay" / "transcripts").exists()  # nothing was captioned from a damaged cassette
     finally:
         path.write_bytes(original)
-    assert cli(args).returncode == 0  # the restored cassette replays
+    assert cli_in_process(args).returncode == 0  # the restored cassette replays
 
 
 # ---------------------------------------------------------------------------------------------- cache entries
@@ -222,7 +228,7 @@ def test_corrupt_cache_entries_are_reported_and_recomputed_in_live_mode(tmp_path
     cache = tmp_path / "cache"
     args = ["run", "--model", "reference", "--fixtures", fixtures, "--conditions", "ee,both", "--no-progress"]
     args += ["--cache-dir", cache]
-    clean = cli([*args, "--out", tmp_path / "clean"])
+    clean = cli_in_process([*args, "--out", tmp_path / "clean"])
     assert clean.returncode == 0, clean.stderr
     expected = cache_answers(cache)
     rows = cache_rows(cache)

@@ -7,6 +7,9 @@ or edited manifest.
   reads fine) is refused, naming the file and the manifest.
 * With the manifest regenerated after the damage (so every checksum passes), a flipped pixel, two swapped
   frames and a steps.npz from another episode are still caught when the episode is used.
+
+The CLI runs in this process (``cli_in_process``): what is checked is its one error line and the files, not
+the process, and a subprocess cost ~1.5 CPU s of imports per command (~10 s for one that scores).
 """
 
 from __future__ import annotations
@@ -17,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from reliability_support import assert_one_line_error, cli, cli_env, fixture_subset, tree_snapshot
+from fault_support import cli_in_process
+from reliability_support import assert_one_line_error, cache_env_sharing_embeddings, fixture_subset, tree_snapshot
 
 from vlmproprio.cache import canonical_json, checksum
 from vlmproprio.episodes import EpisodeError, load_episode, write_manifest
@@ -30,14 +34,21 @@ def fixtures(tmp_path):
     return fixture_subset(tmp_path / "fixtures", ["door_00", "door_01"])
 
 
+def _cache_env(tmp_path: Path) -> dict[str, str]:
+    return {"VLMPROPRIO_CACHE": str(tmp_path / "cache")}
+
+
 @pytest.mark.parametrize(
     "where",
     ["--out inside", "--cache-dir inside", "fixtures inside --out", "score --embedding-cache", "report --out"],
 )
-def test_output_and_caches_inside_the_fixtures_are_refused(tmp_path, fixtures, where, figures):
-    env = cli_env(VLMPROPRIO_CACHE=str(tmp_path / "cache"))
+def test_output_and_caches_inside_the_fixtures_are_refused(tmp_path, tmp_path_factory, fixtures, where, figures):
+    env = _cache_env(tmp_path)
     if where.startswith("score") or where.startswith("report"):
-        proc = cli(["run", *RUN_ARGS, "--fixtures", fixtures, "--out", tmp_path / "run", "--no-progress"], env=env)
+        # report scores the run before it meets --out: the session's shared embeddings spare it the encoder
+        env = {"VLMPROPRIO_CACHE": cache_env_sharing_embeddings(tmp_path, tmp_path_factory)["VLMPROPRIO_CACHE"]}
+        run = ["run", *RUN_ARGS, "--fixtures", fixtures, "--out", tmp_path / "run", "--no-progress"]
+        proc = cli_in_process(run, env=env)
         assert proc.returncode == 0, proc.stderr
     before = tree_snapshot(fixtures)
     args = {
@@ -50,15 +61,15 @@ def test_output_and_caches_inside_the_fixtures_are_refused(tmp_path, fixtures, w
         "score --embedding-cache": ["score", tmp_path / "run", "--embedding-cache", fixtures / "emb"],
         "report --out": ["report", tmp_path / "run", "--out", fixtures / "report"],
     }[where]
-    proc = cli(args, env=env)
+    proc = cli_in_process(args, env=env)
     assert_one_line_error(proc, str(fixtures))
     assert tree_snapshot(fixtures) == before
-    assert cli(["verify", "--fixtures", fixtures], env=env).returncode == 0  # later runs still work
+    assert cli_in_process(["verify", "--fixtures", fixtures], env=env).returncode == 0  # later runs still work
     figures("folders inside the fixtures", cases=1, refused=1, fixture_files_touched=0)
 
 
 def test_replay_refuses_a_cassette_edited_and_rechecksummed(tmp_path, fixtures, figures):
-    env = cli_env(VLMPROPRIO_CACHE=str(tmp_path / "cache"))
+    env = _cache_env(tmp_path)
     shutil.copy(Path(__file__).resolve().parents[2] / "fixtures" / "responses" / "tiny-qwen2-vl.jsonl", tmp_path)
     cassette = fixtures / "responses" / "tiny-qwen2-vl.jsonl"
     cassette.parent.mkdir()
@@ -71,7 +82,7 @@ def test_replay_refuses_a_cassette_edited_and_rechecksummed(tmp_path, fixtures, 
     lines[1] = canonical_json(rec)
     cassette.write_text("\n".join(lines) + "\n")
     args = ["run", "--model", "tiny-qwen2-vl", "--mode", "replay", *RUN_ARGS[2:], "--fixtures", fixtures]
-    proc = cli([*args, "--out", tmp_path / "run", "--no-progress"], env=env)
+    proc = cli_in_process([*args, "--out", tmp_path / "run", "--no-progress"], env=env)
     assert_one_line_error(proc, str(cassette.resolve()), "manifest.json")
     assert not (tmp_path / "run" / "transcripts").exists()
     figures("cassette vs manifest", edited_lines=1, refused=1)
@@ -102,10 +113,10 @@ def test_damage_behind_a_regenerated_manifest_is_caught(tmp_path, fixtures, dama
     ep_dir = fixtures / "episodes" / "door_00"
     damage(ep_dir)
     write_manifest(fixtures)  # every checksum passes now
-    env = cli_env(VLMPROPRIO_CACHE=str(tmp_path / "cache"))
-    proc = cli(["run", *RUN_ARGS, "--fixtures", fixtures, "--out", tmp_path / "run", "--no-progress"], env=env)
-    assert_one_line_error(proc, str(ep_dir))
-    assert_one_line_error(cli(["verify", "--fixtures", fixtures], env=env), str(ep_dir))  # verify checks it all
+    env = _cache_env(tmp_path)
+    run = ["run", *RUN_ARGS, "--fixtures", fixtures, "--out", tmp_path / "run", "--no-progress"]
+    assert_one_line_error(cli_in_process(run, env=env), str(ep_dir))
+    assert_one_line_error(cli_in_process(["verify", "--fixtures", fixtures], env=env), str(ep_dir))  # checks it all
     with pytest.raises(EpisodeError):
         ep = load_episode(fixtures, "door_00")
         for f in ep.frames:

@@ -13,6 +13,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+from fault_support import cli_in_process
 from reliability_support import assert_one_line_error, cache_env_sharing_embeddings, cli, fixture_subset
 
 from vlmproprio.episodes import write_manifest
@@ -24,6 +25,9 @@ NESTED_100 = "[" * 100 + "]" * 100
 
 @pytest.fixture(scope="module")
 def base(tmp_path_factory):
+    """A recorded and scored run to damage. Made through the CLI in this process: only the commands that meet
+    the damage are what is checked (they stay subprocesses, whose stack is the CLI's alone), and scoring in a
+    subprocess imported torch and the encoder again (~10 CPU s)."""
     root = tmp_path_factory.mktemp("nested")
     fixtures = fixture_subset(root / "fixtures", ["door_00"])
     env = cache_env_sharing_embeddings(root, tmp_path_factory)
@@ -32,7 +36,7 @@ def base(tmp_path_factory):
         ["run", *RUN_ARGS, "--fixtures", fixtures, "--out", run, "--no-progress", "--mode", "record"],
         ["score", run],
     ):
-        proc = cli(args, env=env)
+        proc = cli_in_process(args, env={"VLMPROPRIO_CACHE": env["VLMPROPRIO_CACHE"]})
         assert proc.returncode == 0, proc.stderr
     return root, fixtures, run, env
 

@@ -13,6 +13,11 @@ against the loopback server in this process.
 
 Per-fault behaviour of the backend alone (every fault kind transient and persistent, bounded concurrency,
 request format) is tested in tests/test_backends_openai.py.
+
+The CLI runs in this process (``cli_in_process``; what is checked is the run's outcome and its one error
+line, not the process) and the backoff between retries is a tenth of the SDK's (``scaled_retry_backoff``):
+with the real one each failing run waited 7.5 s per request's retries. That a failing run stops after about
+one request's retries, not one per request, is checked by counting the retries.
 """
 
 from __future__ import annotations
@@ -21,11 +26,11 @@ import time
 from pathlib import Path
 
 import pytest
+from fault_support import cli_in_process, scaled_retry_backoff
 from reliability_support import (
     assert_one_line_error,
     cache_answers,
     caption_responder,
-    cli,
     fixture_subset,
     run_file,
     transcripts_of,
@@ -37,6 +42,8 @@ from vlmproprio.testing.openai_server import FakeOpenAIServer
 pytest.importorskip("openai", reason="the openai backend needs the openai SDK (pip install 'vlmproprio[openai]')")
 
 MODEL = "openai:fake-vlm"
+BACKOFF = 0.1  # of the SDK's and the backend's backoff between retries (Retry-After is still honoured as sent)
+RETRIES = 4  # the backend's default max_retries: 5 tries per request
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +54,7 @@ def fixtures(tmp_path_factory) -> Path:
 def run(base_url: str, fixtures: Path, out: Path, *extra: str):
     args = ["run", "--model", MODEL, "--base-url", base_url, "--fixtures", fixtures, "--conditions", "none,both"]
     args += ["--frame-stride", "2", "--no-progress", "--out", out, "--cache-dir", out.parent / f"{out.name}-cache"]
-    return cli([*args, *extra])
+    return cli_in_process([*args, *extra])
 
 
 @pytest.fixture(scope="module")
@@ -70,6 +77,7 @@ def _retried_same_body(requests) -> bool:
 
 
 def test_transient_faults_are_retried_and_the_run_completes(fixtures, clean, tmp_path, monkeypatch, figures):
+    scaled_retry_backoff(monkeypatch, BACKOFF)
     bad_bodies = {"count": 0}
     real_completion = openai_server._completion
 
@@ -171,7 +179,8 @@ def _dies_after(n: int):
     return state, responder
 
 
-def test_a_server_dying_mid_run_fails_fast_and_keeps_every_answer(fixtures, clean, tmp_path, figures):
+def test_a_server_dying_mid_run_fails_fast_and_keeps_every_answer(fixtures, clean, tmp_path, monkeypatch, figures):
+    counts = scaled_retry_backoff(monkeypatch, BACKOFF)
     state, responder = _dies_after(10)
     with FakeOpenAIServer(responder=responder, latency_s=0.02) as server:
         state["server"] = server
@@ -179,8 +188,13 @@ def test_a_server_dying_mid_run_fails_fast_and_keeps_every_answer(fixtures, clea
         proc = run(server.base_url, fixtures, tmp_path / "run", "--concurrency", "2")
         elapsed = time.monotonic() - t0
         answered = sum(r.fault is None for r in server.chat_requests)
+        refused = sum(r.fault == "reset" for r in server.chat_requests)
     assert_one_line_error(proc, "cannot reach", "is the server running")
-    assert elapsed < 30  # one request's retries (~8 s of backoff), not one per request
+    # one request's retries, not one per request: the 2 requests in flight when it died, and at most one more
+    # each that a worker takes from the queue before the run stops (8 requests were still to be asked)
+    assert refused % (1 + RETRIES) == 0 and refused // (1 + RETRIES) <= 2 * 2 < clean["requests"] - answered
+    assert counts["retries"] == refused // (1 + RETRIES) * RETRIES
+    assert elapsed < 30
     kept = cache_answers(tmp_path / "run-cache")
     assert len(kept) == answered >= 10  # every answer the server gave is in the cache
     assert kept.items() <= clean["answers"].items()
@@ -198,17 +212,27 @@ def test_a_server_dying_mid_run_fails_fast_and_keeps_every_answer(fixtures, clea
         answers_kept=len(kept),
         answers_lost=answered - len(kept),
         asked_again_on_resume=0,
+        requests_after_death=refused // (1 + RETRIES),
         failed_after_s=round(elapsed, 1),
     )
 
 
-def test_a_dead_server_fails_fast(fixtures, tmp_path, figures):
+def test_a_dead_server_fails_fast(fixtures, tmp_path, monkeypatch, figures):
+    counts = scaled_retry_backoff(monkeypatch, BACKOFF)
     dead = FakeOpenAIServer()
     dead.close()  # nothing listens on its port any more
     t0 = time.monotonic()
     proc = run(dead.base_url, fixtures, tmp_path / "run", "--concurrency", "4")
     elapsed = time.monotonic() - t0
     assert_one_line_error(proc, f"cannot reach {dead.base_url}", "0 of 8 requests answered")
-    assert elapsed < 30  # 8 requests of up to ~8 s of retries each would take minutes
+    # the 4 requests in flight and at most a few a worker takes from the queue before the run stops, each
+    # retried RETRIES times: not all 8 requests of the batch
+    assert counts["retries"] % RETRIES == 0 and RETRIES <= counts["retries"] < 8 * RETRIES
+    assert elapsed < 30
     assert cache_answers(tmp_path / "run-cache") == {}
-    figures("server faults: dead server", runs=1, failed_after_s=round(elapsed, 1))
+    figures(
+        "server faults: dead server",
+        runs=1,
+        requests_tried=counts["retries"] // RETRIES,
+        failed_after_s=round(elapsed, 1),
+    )

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from fault_support import cli_in_process
 from reliability_support import (
     REPO,
     assert_one_line_error,
@@ -158,7 +159,7 @@ def reference_run(tmp_path):
     fixtures = fixture_subset(tmp_path / "fixtures", ["door_04"])
     args = ["run", "--model", "reference", "--fixtures", fixtures, "--conditions", "ee", "--no-progress"]
     args += ["--cache-dir", tmp_path / "cache"]
-    proc = cli([*args, "--out", tmp_path / "clean"])
+    proc = cli_in_process([*args, "--out", tmp_path / "clean"])  # the clean run: its output is not checked
     assert proc.returncode == 0, proc.stderr
     return tmp_path, args
 
@@ -234,8 +235,11 @@ def test_an_object_array_in_steps_npz_is_refused(tmp_path, figures):
     figures("untrusted data: planted pickles", planted=1, refused=1, executed=0)
 
 
-def test_report_renders_html_in_captions_as_text(tmp_path):
-    """Captions with markup, scored and reported by the CLI as a user would: the page shows them as text."""
+def test_report_renders_html_in_captions_as_text(tmp_path, monkeypatch):
+    """Captions with markup, scored and reported by the CLI as a user would: the page shows them as text.
+
+    The CLI runs in this process: what is checked is the pages it writes, and scoring in a subprocess imported
+    torch and the encoder again (~10 CPU s) where the test session usually has them already."""
     from vlmproprio.testing.openai_server import FakeOpenAIServer
 
     pytest.importorskip("openai", reason="the run goes through the openai backend")
@@ -244,11 +248,12 @@ def test_report_renders_html_in_captions_as_text(tmp_path):
     with FakeOpenAIServer(responder=lambda body: f"Frame 1: {evil}\nFrame 2: {evil}") as server:
         args = ["run", "--model", "openai:fake-vlm", "--base-url", server.base_url, "--fixtures", fixtures]
         args += ["--conditions", "none", "--frame-stride", "3", "--no-progress", "--out", tmp_path / "run"]
-        proc = cli([*args, "--cache-dir", tmp_path / "cache"])
+        proc = cli_in_process([*args, "--cache-dir", tmp_path / "cache"])
     assert proc.returncode == 0, proc.stderr
     captions = [f["text"] for t in transcripts_of(tmp_path / "run").values() for f in t["frames"]]
     assert evil in captions  # the markup reached the transcripts verbatim: the report is what must escape it
-    proc = cli(["report", tmp_path / "run"], timeout=300)  # scores the run first (the default encoder)
+    monkeypatch.setenv("VLMPROPRIO_CACHE", str(tmp_path / "cache-root"))  # its embedding cache, not the user's
+    proc = cli_in_process(["report", tmp_path / "run"])  # scores the run first (the default encoder)
     assert proc.returncode == 0, proc.stderr
     pages = [p.read_text(encoding="utf-8") for p in (tmp_path / "run" / "report").rglob("*.html")]
     assert pages and not any("<script>alert" in page or "<img src=x" in page for page in pages)

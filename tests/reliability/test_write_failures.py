@@ -17,6 +17,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+from fault_support import cli_in_process
 from reliability_support import (
     all_files,
     assert_one_line_error,
@@ -66,12 +67,15 @@ elif KIND == "sqlite-full":
 
 @pytest.fixture(scope="module")
 def base(tmp_path_factory):
+    """A scored run to fail writes on. Made through the CLI in this process: the failing commands are what is
+    checked (they stay subprocesses, with the failure prelude), and scoring in a subprocess imported torch and
+    the encoder again (~10 CPU s)."""
     root = tmp_path_factory.mktemp("writes")
     fixtures = fixture_subset(root / "fixtures", ["door_00"])
     env = cache_env_sharing_embeddings(root, tmp_path_factory)
     run = root / "run"
     for args in (["run", *RUN_ARGS, "--fixtures", fixtures, "--out", run, "--no-progress"], ["score", run]):
-        proc = cli(args, env=env)
+        proc = cli_in_process(args, env={"VLMPROPRIO_CACHE": env["VLMPROPRIO_CACHE"]})
         assert proc.returncode == 0, proc.stderr
     return root, fixtures, run, env
 
