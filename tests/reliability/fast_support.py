@@ -17,8 +17,6 @@ it with ``if __name__ == "__main__"`` (``python -m pytest`` and the ``pytest`` s
 from __future__ import annotations
 
 import atexit
-import contextlib
-import io
 import itertools
 import multiprocessing
 import multiprocessing.forkserver
@@ -163,21 +161,3 @@ def forked_cli(args: Sequence[object], logs: Path, *, timeout: float = 120, **kw
         proc.wait(30)
         raise
     return subprocess.CompletedProcess(proc.args, code, proc.stdout(), proc.stderr())
-
-
-def in_process_cli(args: Sequence[object], monkeypatch, **env: str) -> subprocess.CompletedProcess:
-    """`vlmproprio ARGS` run by ``vlmproprio.cli.main`` in this process, with ``env`` set for its duration (by
-    ``monkeypatch``): for commands whose process boundary is not what a test checks, and whose imports (torch,
-    for a recording that embeds its captions) this process has, or keeps for the next test."""
-    from vlmproprio.cli import main
-
-    for name, value in env.items():
-        monkeypatch.setenv(name, value)
-    out, err = io.StringIO(), io.StringIO()
-    argv = [str(a) for a in args]
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main(argv)
-        except SystemExit as exc:  # argparse's refusals, as the interpreter would turn them into a status
-            code = exc.code if isinstance(exc.code, int) else 1
-    return subprocess.CompletedProcess(argv, code, out.getvalue(), err.getvalue())

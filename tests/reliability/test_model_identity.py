@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 
 import pytest
-from fast_support import in_process_cli
+from fault_support import cli_in_process
 from reliability_support import assert_one_line_error, caption_responder, cli, cli_env, fixture_subset
 
 from vlmproprio.models import resolve_model
@@ -45,7 +45,7 @@ def test_registry_names_keep_their_folders():
     assert resolve_model("openai:gpt-4o").slug == "openai_gpt-4o"
 
 
-def test_two_colliding_models_recorded_into_one_run_and_fixtures_keep_both(tmp_path, figures, monkeypatch):
+def test_two_colliding_models_recorded_into_one_run_and_fixtures_keep_both(tmp_path, figures):
     fixtures = fixture_subset(tmp_path / "fixtures", ["door_00"])
     env = cli_env(VLMPROPRIO_CACHE=str(tmp_path / "cache"))
     run = tmp_path / "run"
@@ -54,7 +54,7 @@ def test_two_colliding_models_recorded_into_one_run_and_fixtures_keep_both(tmp_p
         for name in (a, b):
             # in this process: each recording embeds its new captions for the cassette's sidecar, and importing
             # torch (which the test process has, or keeps for the next test) was most of a subprocess's CPU
-            proc = in_process_cli(
+            proc = cli_in_process(
                 [
                     *(
                         "run",
@@ -70,8 +70,7 @@ def test_two_colliding_models_recorded_into_one_run_and_fixtures_keep_both(tmp_p
                     *("--episodes", "door_00", "--conditions", "none", "--frame-stride", "3", "--out", run),
                     "--no-progress",
                 ],
-                monkeypatch,
-                VLMPROPRIO_CACHE=env["VLMPROPRIO_CACHE"],
+                env={"VLMPROPRIO_CACHE": env["VLMPROPRIO_CACHE"]},
             )
             assert proc.returncode == 0, proc.stderr
     cassettes = {n: fixtures / "responses" / f"{resolve_model(n).slug}.jsonl" for n in (a, b)}

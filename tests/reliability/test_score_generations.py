@@ -16,7 +16,8 @@ import shutil
 from pathlib import Path
 
 import pytest
-from fast_support import forked_cli, in_process_cli
+from fast_support import forked_cli
+from fault_support import cli_in_process
 from reliability_support import assert_one_line_error, cache_env_sharing_embeddings, fixture_subset
 
 RUN_ARGS = ("--model", "reference", "--episodes", "door_00", "--conditions", "none,both", "--frame-stride", "3")
@@ -42,8 +43,7 @@ def scored(tmp_path_factory):
     assert proc.returncode == 0, proc.stderr
     # in this process: this first score embeds the run's captions, and a subprocess spent most of its CPU
     # importing torch, which the test process imports once
-    with pytest.MonkeyPatch.context() as monkeypatch:
-        proc = in_process_cli(["score", run], monkeypatch, VLMPROPRIO_CACHE=env["VLMPROPRIO_CACHE"])
+    proc = cli_in_process(["score", run], env={"VLMPROPRIO_CACHE": env["VLMPROPRIO_CACHE"]})
     assert proc.returncode == 0, proc.stderr
     return root, fixtures, run, env
 
