@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import shutil
 import subprocess
 import sys
@@ -16,7 +17,11 @@ from vlmproprio.backends.tiny import file_hashes
 from vlmproprio.cache import ResponseCache
 from vlmproprio.chat import GenerationConfig, RequestTag
 
-pytest.importorskip("transformers", reason="the hf backend needs transformers (pip install 'vlmproprio[hf]')")
+# checked, not imported: every xdist worker collects this module, and only the one that runs it needs transformers
+pytestmark = pytest.mark.skipif(
+    importlib.util.find_spec("transformers") is None,
+    reason="the hf backend needs transformers (pip install 'vlmproprio[hf]')",
+)
 
 P1_TEXT = (
     "# Process 1\nDescribe what the robot does in each frame, one line per frame.\n"

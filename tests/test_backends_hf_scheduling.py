@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import importlib.util
+
 import pytest
 
 from vlmproprio.answering import Answerer
@@ -9,7 +11,11 @@ from vlmproprio.backends.base import BackendError
 from vlmproprio.chat import GenerationConfig, RequestTag
 from vlmproprio.conditions import CONDITIONS
 
-pytest.importorskip("transformers", reason="the hf backend needs transformers (pip install 'vlmproprio[hf]')")
+# checked, not imported: every xdist worker collects this module, and only the one that runs it needs transformers
+pytestmark = pytest.mark.skipif(
+    importlib.util.find_spec("transformers") is None,
+    reason="the hf backend needs transformers (pip install 'vlmproprio[hf]')",
+)
 
 STATE = "Frame {n}: joint angles [0.012, 0.301, -0.015, -2.310, 0.010, 2.614, 0.785, 0.080]\n"
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import importlib.util
 import os
 import subprocess
 import sys
@@ -17,7 +18,11 @@ from pathlib import Path
 import pytest
 
 inspect_ai = pytest.importorskip("inspect_ai", reason="the inspect task needs the [inspect] extra")
-pytest.importorskip("sentence_transformers", reason="segmentation scores need the [embed] extra")
+# checked, not imported: collecting this module on every xdist worker must not cost sentence-transformers'
+# ~10 CPU s where no test there embeds a caption (the scorer imports it when one does)
+pytestmark = pytest.mark.skipif(
+    importlib.util.find_spec("sentence_transformers") is None, reason="segmentation scores need the [embed] extra"
+)
 
 from inspect_ai.log import read_eval_log  # noqa: E402
 from inspect_ai.model import ContentImage, ModelOutput, ModelUsage, get_model  # noqa: E402

@@ -3,6 +3,7 @@ exactly the answers its committed cassette holds (and so the transcripts the ben
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import pytest
@@ -14,7 +15,10 @@ from vlmproprio.pipeline import calls_per_episode
 from vlmproprio.runner import RunPlan, run
 from vlmproprio.transcripts import read_transcripts
 
-pytest.importorskip("transformers", reason="the live path needs the [hf] extra")
+# checked, not imported: every xdist worker collects this module, and only the one that runs it needs transformers
+pytestmark = pytest.mark.skipif(
+    importlib.util.find_spec("transformers") is None, reason="the live path needs the [hf] extra"
+)
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
 MODEL = "tiny-qwen2-vl"

@@ -14,7 +14,10 @@ import pytest
 
 datasets = pytest.importorskip("datasets", reason="the export needs the [dataset] extra")
 yaml = pytest.importorskip("yaml")
-pytest.importorskip("sentence_transformers", reason="segmentation scores need the [embed] extra")
+# checked, not imported (see tests/test_inspect_task.py): the scorer imports it when a caption is embedded
+pytestmark = pytest.mark.skipif(
+    importlib.util.find_spec("sentence_transformers") is None, reason="segmentation scores need the [embed] extra"
+)
 
 from vlmproprio.chat import Answer, AnswerMeta, ImagePart, TextPart  # noqa: E402
 from vlmproprio.conditions import frame_states, get_condition  # noqa: E402
