@@ -74,19 +74,16 @@ def shared_report(tmp_path_factory: pytest.TempPathFactory) -> tuple[tuple[Path,
     test_report.py and test_report_browser.py both only read it (a test that changes a run copies it first).
     Under xdist (``--dist loadscope``) the two modules may run on different workers: the first builds it in the
     folder the workers share, holding a lock; the other waits for the lock and reuses it."""
-    import fcntl
-
+    from vlmproprio.io import text_computed_once
     from vlmproprio.report import write_report
+
+    def build() -> str:
+        run, fx, ids = make_run(root / "shared-report")
+        write_report(run)
+        return json.dumps([str(run), str(fx), ids])
 
     root = tmp_path_factory.getbasetemp()
     if os.environ.get("PYTEST_XDIST_WORKER"):
         root = root.parent  # the session's folder, above each worker's own
-    base, done = root / "shared-report", root / "shared-report.json"
-    with (root / "shared-report.lock").open("w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file is closed
-        if not done.is_file():
-            run, fx, ids = make_run(base)
-            write_report(run)
-            done.write_text(json.dumps([str(run), str(fx), ids]))
-    run, fx, ids = json.loads(done.read_text())
+    run, fx, ids = json.loads(text_computed_once(root / "shared-report.lock", root / "shared-report.json", build))
     return (Path(run), Path(fx), ids), Path(run) / "report" / "index.html"

@@ -18,7 +18,7 @@ import json
 import os
 import sqlite3
 import tempfile
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
 from vlmproprio.errors import VlmproprioError
@@ -133,6 +133,20 @@ def atomic_write_texts(files: Mapping[Path, str]) -> dict[Path, str]:
     with ThreadPoolExecutor(max_workers=WRITERS, thread_name_prefix="writers") as pool:
         futures = {path: pool.submit(atomic_write_text, path, text) for path, text in files.items()}
     return {path: f.result() for path, f in futures.items()}
+
+
+def text_computed_once(lock: Path, done: Path, compute: Callable[[], str]) -> str:
+    """The text ``compute()`` returns, computed by the first process to take an exclusive lock on ``lock`` and
+    kept in ``done``; a process that comes later waits for the lock and reads ``done``. For work several
+    processes of one session (pytest-xdist workers) need once; POSIX only (``fcntl``). A failure writes
+    nothing: the next process tries again and fails the same way."""
+    import fcntl
+
+    with Path(lock).open("w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)  # released when the file is closed
+        if not done.is_file():
+            atomic_write_text(done, compute())
+        return done.read_text(encoding="utf-8")
 
 
 def sha256_file(path: Path | str) -> str:

@@ -199,22 +199,12 @@ def _shared_run_root(config: pytest.Config, tmp_path_factory: pytest.TempPathFac
 
 
 def _once_per_session(lock: Path, done: Path, compute: Callable[[], ModelResult]) -> ModelResult:
-    """``compute()`` by the first worker to get here, holding an exclusive lock on ``lock``, its result written
-    to ``done`` as JSON; a worker that comes later waits for the lock and reads that. A failure writes nothing:
-    the next worker tries again and fails the same way."""
-    import fcntl
-
+    """``compute()`` once per session whichever worker gets here first; every worker, that one included, gets
+    the result back from its JSON in ``done``, so all of them hold the same values."""
     from vlmproprio.bench import ModelResult
+    from vlmproprio.io import text_computed_once
 
-    with lock.open("w") as held:
-        fcntl.flock(held, fcntl.LOCK_EX)  # released when the file is closed
-        if done.is_file():
-            return ModelResult.from_json(done.read_text(encoding="utf-8"))
-        result = compute()
-        part = done.with_name(done.name + "-part")
-        part.write_text(result.to_json(), encoding="utf-8")
-        part.replace(done)
-        return result
+    return ModelResult.from_json(text_computed_once(lock, done, lambda: compute().to_json()))
 
 
 def _session(config: pytest.Config) -> BenchSession:
