@@ -24,9 +24,15 @@ def pytest_addoption(parser: pytest.Parser, pluginmanager: pytest.PytestPluginMa
 
 @pytest.hookimpl(optionalhook=True)  # pytest-xdist's hook; without xdist installed it is never called
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
-    """``-n auto``: one worker more than there are cores. About a tenth of the suite's time is spent waiting (on
-    CLI subprocesses, local servers, SIGKILLed runs), which an extra worker fills: on 2 cores, 3 workers ran the
-    README's test command in 6 min 53 s against 7 min 29 s with 2 (perf/README.md §8)."""
+    """``-n auto``: what the benchmark's plugin decides where it decides (one process for the benchmark alone,
+    and for runs that record, run live or keep their run folder), else one worker more than there are cores.
+
+    The plugin is asked first because this hook returns the first answer and this conftest's implementation is
+    called before the plugin's: answering alone, it overrode the plugin, so `pytest benchmark/ --mode record`
+    started workers that recorded the same cassette at once. About a tenth of the suite's time is spent waiting
+    (on CLI subprocesses, local servers, SIGKILLed runs), which an extra worker fills: on 2 cores, 3 workers ran
+    the README's test command in 6 min 53 s against 7 min 29 s with 2 (perf/README.md §8)."""
     import os
 
-    return (os.cpu_count() or 1) + 1
+    decided = pytest_plugin.pytest_xdist_auto_num_workers(config)
+    return decided if decided is not None else (os.cpu_count() or 1) + 1

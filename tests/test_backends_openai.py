@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import importlib.util
 import logging
 import secrets
 import time
@@ -15,7 +16,11 @@ from vlmproprio.cache import ResponseCache, canonical_json
 from vlmproprio.chat import GenerationConfig, RequestTag
 from vlmproprio.testing.openai_server import FakeOpenAIServer, expected_answer
 
-pytest.importorskip("openai", reason="the openai backend needs the openai SDK (pip install 'vlmproprio[openai]')")
+# checked, not imported: collecting this module on every xdist worker must not cost the SDK's ~1 CPU s
+pytestmark = pytest.mark.skipif(
+    importlib.util.find_spec("openai") is None,
+    reason="the openai backend needs the openai SDK (pip install 'vlmproprio[openai]')",
+)
 
 KEY_ENV = "VLMPROPRIO_TEST_OPENAI_KEY"
 

@@ -3,18 +3,30 @@
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-datasets = pytest.importorskip("datasets", reason="the export needs the [dataset] extra")
+# checked, not imported: collecting this module on every xdist worker must not cost datasets' and pyarrow's
+# ~1 CPU s; the tests that read the export back import it (the ``datasets`` fixture)
+pytestmark = pytest.mark.skipif(
+    importlib.util.find_spec("datasets") is None, reason="the export needs the [dataset] extra"
+)
 
 from vlmproprio.cli import main as cli_main  # noqa: E402
 from vlmproprio.dataset_export import CITATION, CONFIGS, DatasetExportError, export_dataset  # noqa: E402
 from vlmproprio.episodes import EpisodeError, load_episodes, pixel_sha256  # noqa: E402
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
+
+
+@pytest.fixture(scope="module")
+def datasets():
+    import datasets
+
+    return datasets
 
 
 @pytest.fixture(scope="module")
@@ -40,7 +52,7 @@ def _bits(values) -> bytes:
     return np.asarray(values, dtype=np.float64).tobytes()
 
 
-def test_every_frame_round_trips_bit_identically(exported, episodes, hf_cache):
+def test_every_frame_round_trips_bit_identically(datasets, exported, episodes, hf_cache):
     ds = datasets.load_dataset(str(exported), split="test", cache_dir=hf_cache)  # the default config: frames
     f = ds.features
     assert isinstance(f["image"], datasets.Image)
@@ -71,7 +83,7 @@ def test_every_frame_round_trips_bit_identically(exported, episodes, hf_cache):
     assert seen == {(e.episode_id, fr.index) for e in episodes.values() for fr in e.frames}
 
 
-def test_episode_and_phase_configs_match_the_episodes(exported, episodes, hf_cache):
+def test_episode_and_phase_configs_match_the_episodes(datasets, exported, episodes, hf_cache):
     meta = datasets.load_dataset(str(exported), "episodes", split="test", cache_dir=hf_cache)
     assert sorted(meta["episode_id"]) == sorted(episodes)
     for row in meta:
@@ -124,7 +136,7 @@ def test_card_says_how_imported_episodes_were_made(episodes):
     assert "scripted" not in _recording_text([replace(door, extra={"demo": "demo_1"})])
 
 
-def test_export_is_deterministic_and_refuses_to_clobber(tmp_path):
+def test_export_is_deterministic_and_refuses_to_clobber(datasets, tmp_path):
     a, b = tmp_path / "a", tmp_path / "b"
     export_dataset(FIXTURES, a, ["door_00", "bin2_01"])
     export_dataset(FIXTURES, b, ["door_00", "bin2_01"])

@@ -14,32 +14,27 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
-inspect_ai = pytest.importorskip("inspect_ai", reason="the inspect task needs the [inspect] extra")
 # checked, not imported: collecting this module on every xdist worker must not cost sentence-transformers'
-# ~10 CPU s where no test there embeds a caption (the scorer imports it when one does)
-pytestmark = pytest.mark.skipif(
-    importlib.util.find_spec("sentence_transformers") is None, reason="segmentation scores need the [embed] extra"
-)
-
-from inspect_ai.log import read_eval_log  # noqa: E402
-from inspect_ai.model import ContentImage, ModelOutput, ModelUsage, get_model  # noqa: E402
+# ~10 CPU s where no test there embeds a caption (the scorer imports it when one does), nor inspect_ai's ~1.5 s
+# (the ``ia`` fixture imports it, and the task module that needs it, when a test here runs)
+pytestmark = [
+    pytest.mark.skipif(
+        importlib.util.find_spec("inspect_ai") is None, reason="the inspect task needs the [inspect] extra"
+    ),
+    pytest.mark.skipif(
+        importlib.util.find_spec("sentence_transformers") is None, reason="segmentation scores need the [embed] extra"
+    ),
+]
 
 from vlmproprio.chat import ChatRequest, GenerationConfig, ImagePart  # noqa: E402
 from vlmproprio.conditions import parse_conditions  # noqa: E402
 from vlmproprio.episodes import load_episodes  # noqa: E402
 from vlmproprio.errors import UsageError  # noqa: E402
 from vlmproprio.evaluation import score_run  # noqa: E402
-from vlmproprio.inspect import (  # noqa: E402
-    RUBRIC_METRICS,
-    SEGMENTATION_METRICS,
-    TRANSCRIPT_KEY,
-    from_inspect_messages,
-    proprio_captions,
-    to_inspect_messages,
-)
 from vlmproprio.pipeline import PipelineSettings, caption_episodes  # noqa: E402
 from vlmproprio.runner import RunPlan, run  # noqa: E402
 from vlmproprio.transcripts import Transcript, write_transcript  # noqa: E402
@@ -48,7 +43,6 @@ ROOT = Path(__file__).resolve().parents[1]
 FIXTURES = ROOT / "fixtures"
 EPISODES = ("door_03", "bin1_00")
 CONDITIONS = "none,both,both_shuffled"
-SCORED = (*RUBRIC_METRICS, *SEGMENTATION_METRICS)
 
 # Captions with the rubric's words in them, so that scores are not all zero; which one a frame gets depends on
 # its image, so the similarity trace has steps that segmentation can find (or miss).
@@ -67,12 +61,33 @@ FINALS = (
 )
 
 
-def _fingerprint_inspect(messages) -> tuple:
+@pytest.fixture(scope="module")
+def ia() -> SimpleNamespace:
+    """inspect_ai's API and vlmproprio's task module (which imports inspect_ai)."""
+    import inspect_ai
+    from inspect_ai.log import read_eval_log
+    from inspect_ai.model import ContentImage, ModelOutput, ModelUsage, get_model
+
+    from vlmproprio import inspect as task
+
+    return SimpleNamespace(
+        eval=inspect_ai.eval,
+        read_eval_log=read_eval_log,
+        ContentImage=ContentImage,
+        ModelOutput=ModelOutput,
+        ModelUsage=ModelUsage,
+        get_model=get_model,
+        task=task,
+        scored=(*task.RUBRIC_METRICS, *task.SEGMENTATION_METRICS),
+    )
+
+
+def _fingerprint_inspect(ia: SimpleNamespace, messages) -> tuple:
     out = []
     for m in messages:
         parts = []
         for c in m.content if not isinstance(m.content, str) else []:
-            if isinstance(c, ContentImage):
+            if isinstance(c, ia.ContentImage):
                 data = base64.b64decode(c.image.split(",", 1)[1])
                 parts.append(("image", hashlib.sha256(data).hexdigest()))
             else:
@@ -103,19 +118,19 @@ def _mock_answer(fp: tuple) -> str:
     )
 
 
-def _eval(task, model, log_dir: Path):
-    [log] = inspect_ai.eval(task, model=model, log_dir=str(log_dir), display="none")
+def _eval(ia: SimpleNamespace, task, model, log_dir: Path):
+    [log] = ia.eval(task, model=model, log_dir=str(log_dir), display="none")
     assert log.status == "success", log.error
-    return read_eval_log(log.location)  # what `inspect view` shows: the log as written
+    return ia.read_eval_log(log.location)  # what `inspect view` shows: the log as written
 
 
-def _inspect_rows(log) -> dict[tuple[str, str], dict]:
+def _inspect_rows(ia: SimpleNamespace, log) -> dict[tuple[str, str], dict]:
     out = {}
     for s in log.samples:
         rubric, seg = s.scores["caption_rubric"], s.scores["segmentation"]
         row = rubric.metadata["row"]
-        assert {k: rubric.value[k] for k in RUBRIC_METRICS} == pytest.approx(
-            {k: row[k] for k in RUBRIC_METRICS}, nan_ok=True
+        assert {k: rubric.value[k] for k in ia.task.RUBRIC_METRICS} == pytest.approx(
+            {k: row[k] for k in ia.task.RUBRIC_METRICS}, nan_ok=True
         )
         out[(s.metadata["episode_id"], s.metadata["condition"])] = {**row, **rubric.value, **seg.value}
     return out
@@ -126,35 +141,34 @@ def _suite_rows(run_dir: Path) -> dict[tuple[str, str], dict]:
     return {(r["episode_id"], r["condition"]): r for r in tables.rows}
 
 
-def _assert_same_scores(inspect_rows: dict, suite_rows: dict) -> None:
+def _assert_same_scores(scored: tuple[str, ...], inspect_rows: dict, suite_rows: dict) -> None:
     assert set(inspect_rows) == set(suite_rows) == {(e, c.name) for e in EPISODES for c in parse_conditions(CONDITIONS)}
     for key, mine in inspect_rows.items():
         theirs = suite_rows[key]
         for col, value in theirs.items():
             if col != "model":  # the run folder's model name differs by design
                 assert mine[col] == value or (value != value and mine[col] != mine[col]), (key, col)
-        for m in SCORED:  # the values inspect aggregates are the suite's numbers, exactly
+        for m in scored:  # the values inspect aggregates are the suite's numbers, exactly
             assert mine[m] == theirs[m] or (theirs[m] is None and mine[m] != mine[m]), (key, m)
 
 
-def test_mock_model_scores_equal_the_suites_for_the_same_answers(tmp_path):
+def test_mock_model_scores_equal_the_suites_for_the_same_answers(ia, tmp_path):
     answered: dict[tuple, str] = {}
 
     def mock(input, tools, tool_choice, config):
-        fp = _fingerprint_inspect(input)
+        fp = _fingerprint_inspect(ia, input)
         answered[fp] = _mock_answer(fp)
         assert (config.temperature, config.max_tokens, config.seed) == (0.0, 512, 0)  # the paper's greedy setting
-        out = ModelOutput.from_content(model="mockllm", content=answered[fp])
+        out = ia.ModelOutput.from_content(model="mockllm", content=answered[fp])
         # usage given, so mockllm does not count tokens with tiktoken (which downloads its vocabulary)
-        out.usage = ModelUsage(input_tokens=1, output_tokens=1, total_tokens=2)
+        out.usage = ia.ModelUsage(input_tokens=1, output_tokens=1, total_tokens=2)
         return out
 
-    model = get_model("mockllm/model", custom_outputs=mock)
-    log = _eval(
-        proprio_captions(condition=CONDITIONS, episodes=",".join(EPISODES), fixtures=str(FIXTURES)), model, tmp_path
-    )
+    model = ia.get_model("mockllm/model", custom_outputs=mock)
+    task = ia.task.proprio_captions(condition=CONDITIONS, episodes=",".join(EPISODES), fixtures=str(FIXTURES))
+    log = _eval(ia, task, model, tmp_path)
     assert log.results.total_samples == len(EPISODES) * 3
-    assert any(v.metrics["mean"].value > 0 for v in log.results.scores if v.name in RUBRIC_METRICS)
+    assert any(v.metrics["mean"].value > 0 for v in log.results.scores if v.name in ia.task.RUBRIC_METRICS)
 
     # the same answers through vlmproprio's own pipeline: every request it builds must be one the task sent
     peers = load_episodes(FIXTURES)
@@ -173,10 +187,10 @@ def test_mock_model_scores_equal_the_suites_for_the_same_answers(tmp_path):
     assert len(answered) == sum(len(t.requests) for t in transcripts)  # no request more, none fewer
     for t in transcripts:
         write_transcript(run_dir, t)
-    mine = _inspect_rows(log)
-    _assert_same_scores(mine, _suite_rows(run_dir))
+    mine = _inspect_rows(ia, log)
+    _assert_same_scores(ia.scored, mine, _suite_rows(run_dir))
     # and the transcripts the task kept are the pipeline's
-    stored = {(s.metadata["episode_id"], s.metadata["condition"]): s.store[TRANSCRIPT_KEY] for s in log.samples}
+    stored = {(s.metadata["episode_id"], s.metadata["condition"]): s.store[ia.task.TRANSCRIPT_KEY] for s in log.samples}
     for t in transcripts:
         kept = Transcript.from_dict(stored[(t.episode_id, t.condition)])
         assert (kept.frame_texts, [s.text for s in kept.scenes], kept.final) == (
@@ -186,9 +200,10 @@ def test_mock_model_scores_equal_the_suites_for_the_same_answers(tmp_path):
         )
 
 
-def test_reference_provider_matches_vlmproprio_run(tmp_path):
+def test_reference_provider_matches_vlmproprio_run(ia, tmp_path):
     log = _eval(
-        proprio_captions(condition=CONDITIONS, episodes=",".join(EPISODES), fixtures=str(FIXTURES)),
+        ia,
+        ia.task.proprio_captions(condition=CONDITIONS, episodes=",".join(EPISODES), fixtures=str(FIXTURES)),
         "vlmproprio/reference",
         tmp_path / "logs",
     )
@@ -204,12 +219,12 @@ def test_reference_provider_matches_vlmproprio_run(tmp_path):
         progress=False,
     )
     run(plan)
-    _assert_same_scores(_inspect_rows(log), _suite_rows(run_dir))
-    words = {k: v["final_words"] for k, v in _inspect_rows(log).items()}
+    _assert_same_scores(ia.scored, _inspect_rows(ia, log), _suite_rows(run_dir))
+    words = {k: v["final_words"] for k, v in _inspect_rows(ia, log).items()}
     assert words[("door_03", "both")] > words[("door_03", "none")]  # state in the prompt reached the captioner
 
 
-def test_messages_round_trip_between_vlmproprio_and_inspect():
+def test_messages_round_trip_between_vlmproprio_and_inspect(ia):
     from vlmproprio.conditions import get_condition
     from vlmproprio.pipeline import CellRun
 
@@ -221,23 +236,23 @@ def test_messages_round_trip_between_vlmproprio_and_inspect():
         ep, cond, [ImagePart(f.image_bytes()) for f in ep.frames], frame_states(ep, cond), PipelineSettings()
     )
     request = cell.p1_requests()[0]
-    back = from_inspect_messages(to_inspect_messages(request), request.config)
+    back = ia.task.from_inspect_messages(ia.task.to_inspect_messages(request), request.config)
     assert back.messages == request.messages and len(back.images) == 5
-    bad = to_inspect_messages(request)
-    bad[0].content[1] = ContentImage(image="https://example.org/frame.png")
+    bad = ia.task.to_inspect_messages(request)
+    bad[0].content[1] = ia.ContentImage(image="https://example.org/frame.png")
     with pytest.raises(UsageError, match="data URI"):
-        from_inspect_messages(bad, GenerationConfig())
+        ia.task.from_inspect_messages(bad, GenerationConfig())
 
 
-def test_task_refuses_unknown_episodes_and_conditions():
+def test_task_refuses_unknown_episodes_and_conditions(ia):
     with pytest.raises(UsageError, match="unknown episode"):
-        proprio_captions(episodes="door_99", fixtures=str(FIXTURES))
+        ia.task.proprio_captions(episodes="door_99", fixtures=str(FIXTURES))
     with pytest.raises(UsageError, match="unknown condition"):
-        proprio_captions(condition="bothh", episodes="door_00", fixtures=str(FIXTURES))
+        ia.task.proprio_captions(condition="bothh", episodes="door_00", fixtures=str(FIXTURES))
 
 
 @pytest.mark.slow
-def test_inspect_eval_command_finds_the_task_through_the_entry_point(tmp_path):
+def test_inspect_eval_command_finds_the_task_through_the_entry_point(ia, tmp_path):
     """`inspect eval vlmproprio/proprio_captions` as a user types it, with the entry point pyproject.toml declares
     (installed here as a tiny dist-info, so the test does not depend on how this checkout was installed).
     door_03 under both is what the reference test above captions: its embeddings are cached by then, which saves
@@ -260,7 +275,7 @@ def test_inspect_eval_command_finds_the_task_through_the_entry_point(tmp_path):
     )
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     [path] = (tmp_path / "logs").glob("*.eval")
-    log = read_eval_log(str(path))
+    log = ia.read_eval_log(str(path))
     assert log.status == "success" and log.eval.task == "vlmproprio/proprio_captions"
     assert [s.id for s in log.samples] == ["door_03__both"]
-    assert {s.name for s in log.results.scores} == set(SCORED)
+    assert {s.name for s in log.results.scores} == set(ia.scored)

@@ -12,12 +12,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-datasets = pytest.importorskip("datasets", reason="the export needs the [dataset] extra")
 yaml = pytest.importorskip("yaml")
-# checked, not imported (see tests/test_inspect_task.py): the scorer imports it when a caption is embedded
-pytestmark = pytest.mark.skipif(
-    importlib.util.find_spec("sentence_transformers") is None, reason="segmentation scores need the [embed] extra"
-)
+# checked, not imported (see tests/test_inspect_task.py): the scorer imports sentence-transformers when a caption
+# is embedded, the test below imports datasets; collecting the module on every xdist worker costs neither
+pytestmark = [
+    pytest.mark.skipif(importlib.util.find_spec("datasets") is None, reason="the export needs the [dataset] extra"),
+    pytest.mark.skipif(
+        importlib.util.find_spec("sentence_transformers") is None, reason="segmentation scores need the [embed] extra"
+    ),
+]
 
 from vlmproprio.chat import Answer, AnswerMeta, ImagePart, TextPart  # noqa: E402
 from vlmproprio.conditions import frame_states, get_condition  # noqa: E402
@@ -52,6 +55,8 @@ def _load_task() -> dict:
 
 
 def test_lmms_eval_task_uses_vlmproprios_prompt_parser_and_segmentation(tmp_path):
+    import datasets
+
     task = _load_task()
     out = tmp_path / task["dataset_path"]
     export_dataset(FIXTURES, out, EPISODES)

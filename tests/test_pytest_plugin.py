@@ -108,3 +108,42 @@ def test_stash(request):
         "no:cacheprovider",
     )
     result.assert_outcomes(passed=1)
+
+
+def _root_conftest():
+    """The repository's conftest.py as its own module (pytest has it loaded under a name of its own)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("_vlmproprio_root_conftest", REPO / "conftest.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _config(args: list[Path], **options):
+    from types import SimpleNamespace
+
+    from vlmproprio.pytest_plugin import dest
+
+    values = {dest("mode"): "auto", dest("run-dir"): None} | {dest(k.replace("_", "-")): v for k, v in options.items()}
+    return SimpleNamespace(getoption=values.__getitem__, rootpath=REPO, args=[str(a) for a in args])
+
+
+@pytest.mark.parametrize(
+    ("args", "options", "one_process"),
+    [
+        ([REPO / "benchmark"], {}, True),  # the benchmark alone: the workers would each replay and score again
+        ([REPO / "benchmark" / "test_claims.py"], {"mode": "replay"}, True),
+        ([REPO / "tests", REPO / "benchmark"], {"mode": "record"}, True),  # workers would record one cassette
+        ([REPO / "tests", REPO / "benchmark"], {"run_dir": "runs/x"}, True),
+        ([REPO / "tests", REPO / "benchmark"], {}, False),  # the README's test command: spread over the cores
+        ([REPO / "tests" / "test_stats.py"], {"mode": "replay"}, False),
+    ],
+)
+def test_auto_workers_follow_the_plugin_where_it_decides(args, options, one_process) -> None:
+    """`-n auto` asks the root conftest, whose answer xdist takes first: it must defer to the plugin's one-process
+    rule (it once did not, and `pytest benchmark/` started a worker per core that each scored every model)."""
+    import os
+
+    workers = _root_conftest().pytest_xdist_auto_num_workers(_config(args, **options))
+    assert workers == (0 if one_process else (os.cpu_count() or 1) + 1)

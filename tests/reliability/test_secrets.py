@@ -15,6 +15,7 @@ then the run's HTML report (page, Markdown, figures) is written and searched too
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import secrets
 import sqlite3
 import zlib
@@ -26,7 +27,11 @@ from reliability_support import all_files, caption_responder, cli, cli_env, fixt
 from vlmproprio.testing import openai_server
 from vlmproprio.testing.openai_server import FakeOpenAIServer
 
-pytest.importorskip("openai", reason="the openai backend needs the openai SDK (pip install 'vlmproprio[openai]')")
+# checked, not imported: collecting this module on every xdist worker must not cost the SDK's ~1 CPU s
+pytestmark = pytest.mark.skipif(
+    importlib.util.find_spec("openai") is None,
+    reason="the openai backend needs the openai SDK (pip install 'vlmproprio[openai]')",
+)
 
 MODEL = "openai:fake-vlm"
 DEBUG_LOGGING = "import logging, sys\nlogging.basicConfig(level=logging.DEBUG, stream=sys.stderr)"
