@@ -253,22 +253,23 @@ def collected(tmp_path_factory):
     """Demo files of Door (robosuite layout, 2 demos), PickPlaceCereal (robomimic layout), PickPlaceCan and Lift,
     each with the direct recording of the same run: {file key: (path, [PolicyRun per demo])}."""
     pytest.importorskip("robosuite", reason="needs the [record] extra (robosuite==1.5.2, mujoco==3.3.7)")
-    from demo_helpers import collecting_env, end_demo, next_demo, write_demo_hdf5
+    from demo_helpers import collecting_env, end_demo, frozen_gc, next_demo, write_demo_hdf5
     from vlmproprio.record.recorder import EpisodeSpec, operator_policy, run_policy
 
     base = tmp_path_factory.mktemp("demos")
     out = {}
 
     def collect(key, env_name, seed, camera, runs_of, layout="robosuite", first=1):
-        wrapped = collecting_env(env_name, seed, base / f"raw_{key}", camera)
-        raws, runs = [], []
-        for i, make_run in enumerate(runs_of):
-            if i:
-                next_demo(wrapped)
-            run = make_run(wrapped)
-            runs.append(run)
-            raws.append(end_demo(wrapped, run.actions))
-        wrapped.close()
+        with frozen_gc():
+            wrapped = collecting_env(env_name, seed, base / f"raw_{key}", camera)
+            raws, runs = [], []
+            for i, make_run in enumerate(runs_of):
+                if i:
+                    next_demo(wrapped)
+                run = make_run(wrapped)
+                runs.append(run)
+                raws.append(end_demo(wrapped, run.actions))
+            wrapped.close()
         path = write_demo_hdf5(base / f"{key}.hdf5", env_name, raws, layout=layout, first=first)
         out[key] = (path, runs)
 
@@ -316,12 +317,13 @@ def imported(collected, tmp_path_factory):
     """All demo files imported into one fixture folder with the CLI: (folder, {episode id: (file key, run)}).
 
     Frames are written as level-1 PNGs (tests/png_helpers.py): the tests compare decoded pixels, not PNG bytes."""
+    from demo_helpers import frozen_gc
     from png_helpers import fast_png_writes
 
     root = tmp_path_factory.mktemp("imported")
     pairs = {}
     for key, (path, runs) in collected.items():
-        with fast_png_writes():
+        with fast_png_writes(), frozen_gc():
             assert main(["import-demos", str(path), "--task", TASK_OF[key], "--out", str(root), "--no-progress"]) == 0
         for name, run in zip(demos.read_demo_file(path).demos, runs, strict=True):
             pairs[demos.episode_id_for(f"imp_{TASK_OF[key]}", name, 0)] = (key, run)
@@ -446,13 +448,15 @@ def test_state_replay_when_the_actions_do_not_reproduce_the_states(collected, tm
     """A recorded state no replay of the actions reproduces (as in files from other robosuite versions): ``auto``
     falls back to the recorded states, whose frames and joints are still the recorder's, and whose pose rows
     are within a measured bound (they need the velocity one substep before the end, which no file holds)."""
+    from demo_helpers import frozen_gc
+
     path, runs = collected["cereal"]
     bad = tmp_path / "cereal.hdf5"
     shutil.copy(path, bad)
     with h5py.File(bad, "a") as f:
         f["data/demo_0/states"][5, 1] += 1e-9  # robot joint 1 at step 5
     file, demo = demos.read_demo_file(bad), demos.read_demo(bad, "demo_0")
-    with demos.ImportEnv(file, scenes.PICK_PLACE, scenes.BIN_CAMERA) as env:
+    with frozen_gc(), demos.ImportEnv(file, scenes.PICK_PLACE, scenes.BIN_CAMERA) as env:
         with pytest.raises(DemoImportError, match=r"demo_0: replaying the actions does not reproduce .* at step 5"):
             demos.import_demo(file, demo, scenes.PICK_PLACE, "x", replay_mode="actions", env=env)
         res = demos.import_demo(file, demo, scenes.PICK_PLACE, "x", env=env)

@@ -13,20 +13,32 @@ def make_import_env(file: DemoFile, task: scenes.TaskInfo, horizon: int):
     """A robosuite env of the demo's class, with its recorded controller and control rate where possible.
 
     Returns (env, note): note says when the recorded controller could not be used (the default OSC_POSE
-    is, and an action replay then cannot be exact; ``auto`` falls back to the recorded states)."""
-    import robosuite as suite
+    is, and an action replay then cannot be exact; ``auto`` falls back to the recorded states).
 
+    The env gets its offscreen render context at its next reset (``load_demo_model`` reloads it): the sim
+    ``suite.make`` builds is replaced before anything is rendered, and a render context costs ~0.7 s of CPU
+    with software OpenGL. Frames are unchanged: every sim gets a context of its own either way."""
     kwargs = scenes.env_kwargs(seed=0, horizon=horizon)
     if "control_freq" in file.env_kwargs:
         kwargs["control_freq"] = file.env_kwargs["control_freq"]
-    controller = file.env_kwargs.get("controller_configs")
+    kwargs["has_offscreen_renderer"] = False
+    env, note = _make(task.env_name, file.env_kwargs.get("controller_configs"), kwargs)
+    # robosuite reads the flag only when a reset sets up a sim (and to check camera observations, which are off)
+    env.has_offscreen_renderer = True
+    return env, note
+
+
+def _make(env_name: str, controller: dict | None, kwargs: dict):
+    """(env, note): the env with the recorded controller, or with the default one and a note saying why."""
+    import robosuite as suite
+
     if controller:
         try:
-            return suite.make(task.env_name, controller_configs=controller, **kwargs), None
+            return suite.make(env_name, controller_configs=controller, **kwargs), None
         except Exception as exc:  # any malformed or version-specific controller config: fall back below
             note = f"recorded controller not loadable here ({type(exc).__name__}: {str(exc)[:120]}); default used"
-            return suite.make(task.env_name, **kwargs), note
-    return suite.make(task.env_name, **kwargs), None
+            return suite.make(env_name, **kwargs), note
+    return suite.make(env_name, **kwargs), None
 
 
 def load_demo_model(env, demo: Demo, file: DemoFile, camera: str) -> None:
