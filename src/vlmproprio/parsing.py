@@ -39,6 +39,7 @@ _LABEL = re.compile(
 )
 _STATE_ECHO = re.compile(rf"^(?:{re.escape(JOINT_LABEL)}|{re.escape(EE_LABEL)}) \[", re.IGNORECASE)
 _SENTENCE = re.compile(r"(?<=[.!?])\s+(?=[A-Z])")
+_LONE_SURROGATE = re.compile("[\ud800-\udfff]")
 
 
 @dataclass(frozen=True)
@@ -48,8 +49,10 @@ class Parsed:
 
 
 def _clean(text: str) -> str:
+    """One line of text, its markdown emphasis stripped, and valid Unicode: a lone surrogate (a JSON answer's
+    ``"\\ud800"`` escape decodes to one) is replaced, since no UTF-8 transcript could hold it."""
     text = re.sub(r"\s+", " ", text).strip().strip("*_").strip()
-    return text
+    return _LONE_SURROGATE.sub("\ufffd", text)
 
 
 def _cap(p: Parsed) -> Parsed:

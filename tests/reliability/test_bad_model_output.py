@@ -162,12 +162,14 @@ def check_frames(result: Sequence[Parsed], count: int) -> None:
         assert (p.status == "missing") == (p.text == "")  # a missing caption is empty, a found one is not
         assert len(p.text) <= MAX_CAPTION_CHARS + 1
         assert "\n" not in p.text and "\r" not in p.text
+        p.text.encode("utf-8")  # valid Unicode: a transcript can hold it (no lone surrogate)
 
 
 def check_single(p: Parsed) -> None:
     assert isinstance(p.text, str) and p.status in PARSE_STATUSES
     assert (p.status == "missing") == (p.text == "")
     assert len(p.text) <= MAX_CAPTION_CHARS + 1
+    p.text.encode("utf-8")
 
 
 def test_ten_thousand_answers_through_every_parser(figures):
@@ -295,3 +297,16 @@ def test_the_pipeline_writes_one_status_per_frame_whatever_the_model_says(figure
 @pytest.mark.parametrize("count", [0, -1])
 def test_no_frames_asked_gives_no_captions(count):
     assert parse_frame_captions("Frame 1: something", count) == []
+
+
+def test_escaped_lone_surrogates_in_an_answer_still_give_writable_transcripts(tmp_path):
+    """A valid, all-ASCII answer whose JSON escapes decode to lone surrogates (any model can write the text
+    ``["\\ud800"]``): the captions hold U+FFFD instead, and the transcript is written and read back. Found by
+    the pooled answers of the 10,000-answer test; before, write_transcript raised UnicodeEncodeError."""
+    answer = json.dumps(["\ud800 the gripper closes", "\udfff", "plain"] + ["x"] * 9)
+    assert answer.isascii()
+    frames = parse_frame_captions(answer, 3)
+    assert [f.text for f in frames] == ["\ufffd the gripper closes", "\ufffd", "plain"]
+    ts = caption_episodes([EPISODE], parse_conditions("both"), Scripted([answer]).generate, "junk", progress=False)
+    back = read_transcript(write_transcript(tmp_path, ts[0]))
+    assert "\ufffd the gripper closes" in back.frame_texts
