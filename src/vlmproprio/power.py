@@ -108,12 +108,16 @@ def sign_flip_p_many(
     if d.ndim != 2 or d.shape[1] == 0:
         raise UsageError(f"expected data sets x episodes, got shape {d.shape}")
     signs, exact = sign_patterns(d.shape[1], n_perm, seed, max_exact)
+    # patterns as columns, contiguous, and |statistics| taken in place: the same products and comparisons as
+    # one would write plainly, in under half the time (the report runs ~140 of these)
+    columns = np.ascontiguousarray(signs.T)
     out = np.empty(d.shape[0])
     for s in range(0, d.shape[0], _ROWS_PER_CHUNK):
         block = d[s : s + _ROWS_PER_CHUNK]
         obs = np.abs(block.sum(axis=1))
         tol = TIE_RTOL * np.maximum(np.maximum(obs, np.abs(block).max(axis=1)), 1e-300)
-        stats = np.abs(block @ signs.T)
+        stats = block @ columns
+        np.abs(stats, out=stats)
         hits = np.count_nonzero(stats >= (obs - tol)[:, None], axis=1)
         out[s : s + len(block)] = hits / len(signs) if exact else (hits + 1) / (len(signs) + 1)
     return out
