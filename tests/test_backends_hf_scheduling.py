@@ -204,3 +204,61 @@ def test_the_throughput_benchmark_runs_on_the_tiny_model(tmp_path, tiny_qwen2vl_
     assert doc["requests"]["p1_requests"] == groups and doc["requests"]["cells"] == cells
     assert [w["wave"] for w in doc["waves"]] == ["p1", "p2", "p3"]
     assert doc["estimate"]["requests"] == groups + groups + cells
+
+
+def pipeline_prompts(episode_ids: tuple[str, ...]) -> list:
+    """Every request (Processes 1-3) the pipeline makes for these episodes under every condition."""
+    from pathlib import Path
+
+    from vlmproprio.backends.reference import ReferenceBackend
+    from vlmproprio.conditions import parse_conditions
+    from vlmproprio.episodes import load_episodes
+    from vlmproprio.pipeline import caption_episodes
+
+    fixtures = Path(__file__).resolve().parents[1] / "fixtures"
+    reference, seen = ReferenceBackend(), []
+
+    def answer(requests):
+        seen.extend(requests)
+        return reference.generate(requests)
+
+    episodes = load_episodes(fixtures, episode_ids)
+    caption_episodes(episodes, parse_conditions("all"), answer, "reference", chunk=10**9, progress=False)
+    return seen
+
+
+def test_prompt_lengths_counted_by_pieces_equal_whole_texts(tiny_qwen2vl_backend):
+    """The scheduler counts a prompt's tokens piece by piece between added tokens, with the pieces cached
+    (hf_tokens): the counts must be those of tokenizing each whole text, on the pipeline's real prompts (one
+    episode, every condition, Processes 1-3: every template part and kind of state text)."""
+    from vlmproprio.backends.hf_tokens import PromptTokenCounter
+
+    backend = tiny_qwen2vl_backend
+    requests = pipeline_prompts(("door_02",))
+    texts = [backend._chat_text(r) for r in requests]
+    tok = backend.processor.tokenizer
+    whole = [len(ids) for ids in tok(texts, add_special_tokens=False)["input_ids"]]
+    counter = PromptTokenCounter(tok)
+    assert counter.pattern is not None  # the pieces path, not the whole-text fallback
+    assert {r.tag.stage for r in requests} == {"p1", "p2", "p3"} and len(set(whole)) > 10
+    assert counter.counts(texts) == whole
+    assert counter.counts(texts[::-1]) == whole[::-1]  # from the cache
+    images = [sum(backend._tokens_of(i) - 1 for i in r.images) for r in requests]
+    assert [s.prompt_tokens for s in backend.request_shapes(requests)] == [
+        w + n for w, n in zip(whole, images, strict=True)
+    ]
+
+
+def test_prompt_lengths_fall_back_to_whole_texts(tiny_qwen2vl_backend):
+    """An added token that is normalized or strips whitespace is not matched on the raw text: no cutting."""
+    from tokenizers import AddedToken
+
+    from vlmproprio.backends.hf_tokens import PromptTokenCounter, added_token_pattern
+
+    tok = tiny_qwen2vl_backend.processor.tokenizer
+    assert added_token_pattern(tok) is not None
+    other = type(tok).from_pretrained(tiny_qwen2vl_backend.weights.path)
+    other.add_tokens([AddedToken("<|joint|>", lstrip=True)])
+    assert added_token_pattern(other) is None
+    text = "Frame 1:  <|joint|> 0.25<|im_end|>\n"
+    assert PromptTokenCounter(other).counts([text]) == [len(other(text, add_special_tokens=False)["input_ids"])]

@@ -56,6 +56,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vlmproprio.backends.base import Backend, BackendError
+from vlmproprio.backends.hf_tokens import PromptTokenCounter
 from vlmproprio.backends.scheduling import RequestShape, plan_batches, round_up
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart
 from vlmproprio.episodes import sha256_file
@@ -263,7 +264,9 @@ class HFBackend(Backend):
         self.compile_decode = compile_decode
         self.cache_bucket = cache_bucket
         self.max_batch_tokens = max_batch_tokens if max_batch_tokens or device != "cpu" else CPU_BATCH_TOKENS
-        self._image_tokens: dict[str, int] = {}  # image sha256 -> tokens it becomes (for the scheduler)
+        self._image_sizes: dict[str, tuple[int, int] | None] = {}  # image sha256 -> (height, width), for the scheduler
+        self._size_tokens: dict[tuple[int, int], int] = {}  # (height, width) -> tokens an image of it becomes
+        self._prompt_tokens: PromptTokenCounter | None = None  # prompt lengths for the scheduler (see hf_tokens)
         # the last static cache, kept for the next batch of the same shape: a compiled decode step replays its
         # CUDA graph only while the cache tensors stay at the same addresses
         self._static: tuple[tuple[int, int], object] | None = None
@@ -315,6 +318,7 @@ class HFBackend(Backend):
     def close(self) -> None:
         self.model = None
         self.processor = None
+        self._prompt_tokens = None
         self._static = None
 
     @property
@@ -351,8 +355,10 @@ class HFBackend(Backend):
     def request_shapes(self, requests: Sequence[ChatRequest]) -> list[RequestShape]:
         """Prompt length (text tokens + the tokens each image becomes) and image count of each request."""
         self.load()
-        texts = [self._chat_text(r) for r in requests]
-        lengths = [len(ids) for ids in self.processor.tokenizer(texts, add_special_tokens=False)["input_ids"]]
+        tok = self.processor.tokenizer
+        if self._prompt_tokens is None or self._prompt_tokens.tokenizer is not tok:  # new, or swapped (perf/)
+            self._prompt_tokens, self._size_tokens = PromptTokenCounter(tok), {}
+        lengths = self._prompt_tokens.counts([self._chat_text(r) for r in requests])
         shapes = []
         for r, n_text in zip(requests, lengths, strict=True):
             # the chat text holds one placeholder token per image; the processor expands it
@@ -362,21 +368,24 @@ class HFBackend(Backend):
         return shapes
 
     def _tokens_of(self, img: ImagePart) -> int:
-        """How many tokens the processor makes of ``img`` (from its size; the pixels are not decoded)."""
-        if img.sha256 not in self._image_tokens:
-            from PIL import Image
+        """How many tokens the processor makes of ``img`` (from its size; the pixels are not decoded). The count
+        depends on the size only, so it is asked of the processor once per size (a wave's frames share one)."""
+        if img.sha256 not in self._image_sizes:
+            self._image_sizes[img.sha256] = _image_size(img)
+        size = self._image_sizes[img.sha256]
+        if size is None:  # a bad image, which fails later with its own message: only an ordering hint
+            return 1
+        if size not in self._size_tokens:
+            self._size_tokens[size] = self._tokens_of_size(size)
+        return self._size_tokens[size]
 
-            try:
-                with Image.open(io.BytesIO(img.data)) as im:
-                    width, height = im.size
-                counts = self.processor._get_num_multimodal_tokens(image_sizes=[(height, width)])
-                n = int(counts["num_image_tokens"][0])
-            except (AttributeError, KeyError, TypeError, ValueError, OSError):
-                # only an ordering hint: a processor without the count, or a bad image (which fails later with
-                # its own message), sorts by text length and image count
-                n = 1
-            self._image_tokens[img.sha256] = n
-        return self._image_tokens[img.sha256]
+    def _tokens_of_size(self, size: tuple[int, int]) -> int:
+        try:
+            counts = self.processor._get_num_multimodal_tokens(image_sizes=[size])
+            return int(counts["num_image_tokens"][0])
+        except (AttributeError, KeyError, TypeError, ValueError, OSError):
+            # only an ordering hint: a processor without the count sorts by text length and image count
+            return 1
 
     def _compiles_decode(self) -> bool:
         if not self.static_cache or self.compile_decode is False:
@@ -475,6 +484,18 @@ def _eos_ids(model) -> set[int]:
     if model.generation_config.pad_token_id is not None:
         ids.add(model.generation_config.pad_token_id)
     return ids
+
+
+def _image_size(img: ImagePart) -> tuple[int, int] | None:
+    """(height, width) of ``img`` from its header; None for an image that PIL cannot open."""
+    from PIL import Image
+
+    try:
+        with Image.open(io.BytesIO(img.data)) as im:
+            width, height = im.size
+    except (OSError, ValueError):
+        return None
+    return (height, width)
 
 
 def _decode_image(img: ImagePart, request: ChatRequest):
