@@ -262,3 +262,38 @@ def test_prompt_lengths_fall_back_to_whole_texts(tiny_qwen2vl_backend):
     assert added_token_pattern(other) is None
     text = "Frame 1:  <|joint|> 0.25<|im_end|>\n"
     assert PromptTokenCounter(other).counts([text]) == [len(other(text, add_special_tokens=False)["input_ids"])]
+
+
+def _metaspace_first_tokenizer():
+    """A Llama-2-style tokenizer in miniature: Metaspace prepending '▁' to the first piece of a text only, and a
+    vocabulary where 'hello' is one token but '▁hello' two, so a piece tokenized alone counts one more."""
+    from tokenizers import Tokenizer, models, pre_tokenizers
+    from transformers import PreTrainedTokenizerFast
+
+    vocab = {"[UNK]": 0, "▁": 1, "h": 2, "e": 3, "l": 4, "o": 5, "he": 6, "ll": 7, "hell": 8, "hello": 9}
+    merges = [("h", "e"), ("l", "l"), ("he", "ll"), ("hell", "o")]
+    raw = Tokenizer(models.BPE(vocab, merges, unk_token="[UNK]"))
+    raw.pre_tokenizer = pre_tokenizers.Metaspace(replacement="▁", prepend_scheme="first")
+    tok = PreTrainedTokenizerFast(tokenizer_object=raw, unk_token="[UNK]")
+    tok.add_special_tokens({"additional_special_tokens": ["<image>"]})
+    return tok
+
+
+def test_prompt_lengths_of_first_piece_prepending_tokenizers_are_counted_whole():
+    """'<image>hello' is '<image>', 'hello' whole but '<image>', '▁', 'hello' cut: such tokenizers are not cut, and
+    a counter that would cut one anyway (a tokenizer the structural checks miss) finds out on its first texts."""
+    import re
+
+    from vlmproprio.backends.hf_tokens import PromptTokenCounter, added_token_pattern
+
+    tok = _metaspace_first_tokenizer()
+    texts = ["hello<image>hello", "<image>hello hello"]
+    whole = [len(ids) for ids in tok(texts, add_special_tokens=False)["input_ids"]]
+    assert whole == [4, 4]
+    assert added_token_pattern(tok) is None
+    assert PromptTokenCounter(tok).counts(texts) == whole
+    forced = PromptTokenCounter(tok)
+    forced.pattern = re.compile("(<image>)")  # as if the structural checks had passed
+    assert forced._by_pieces(texts) == [5, 5]  # what cutting would have counted
+    assert forced.counts(texts) == whole and forced.pattern is None
+    assert forced.counts(["<image>hello"]) == [2]
