@@ -8,9 +8,20 @@ behaviour beyond serialisation, so every stage can import them.
 from __future__ import annotations
 
 import hashlib
+import re
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import Literal
+
+_LONE_SURROGATE = re.compile("[\ud800-\udfff]")
+
+
+def valid_unicode(text: str) -> str:
+    """``text`` with every lone surrogate replaced by U+FFFD. JSON escapes can carry them (``"\\ud800"``), in a
+    server's response or inside a model's answer, and no UTF-8 file can hold one: answers and the captions parsed
+    from them go through here before anything stores them."""
+    return _LONE_SURROGATE.sub("\ufffd", text)
+
 
 Role = Literal["system", "user", "assistant"]
 

@@ -19,6 +19,7 @@ import json
 import re
 from dataclasses import dataclass
 
+from vlmproprio.chat import valid_unicode
 from vlmproprio.prompts.state import EE_LABEL, JOINT_LABEL
 from vlmproprio.transcripts import ParseStatus
 
@@ -39,7 +40,6 @@ _LABEL = re.compile(
 )
 _STATE_ECHO = re.compile(rf"^(?:{re.escape(JOINT_LABEL)}|{re.escape(EE_LABEL)}) \[", re.IGNORECASE)
 _SENTENCE = re.compile(r"(?<=[.!?])\s+(?=[A-Z])")
-_LONE_SURROGATE = re.compile("[\ud800-\udfff]")
 
 
 @dataclass(frozen=True)
@@ -52,7 +52,7 @@ def _clean(text: str) -> str:
     """One line of text, its markdown emphasis stripped, and valid Unicode: a lone surrogate (a JSON answer's
     ``"\\ud800"`` escape decodes to one) is replaced, since no UTF-8 transcript could hold it."""
     text = re.sub(r"\s+", " ", text).strip().strip("*_").strip()
-    return _LONE_SURROGATE.sub("\ufffd", text)
+    return valid_unicode(text)
 
 
 def _cap(p: Parsed) -> Parsed:

@@ -26,7 +26,6 @@ import logging
 import math
 import os
 import random
-import re
 import threading
 import time
 from collections.abc import Sequence
@@ -34,7 +33,7 @@ from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 
 from vlmproprio.backends.base import Backend, BackendError
 from vlmproprio.backends.settings import OpenAISettings
-from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart
+from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart, valid_unicode
 
 log = logging.getLogger(__name__)
 
@@ -47,13 +46,10 @@ class MalformedCompletion(Exception):
     """A 200 response whose body parsed but is not a usable chat completion (no choices, non-text content)."""
 
 
-_LONE_SURROGATE = re.compile("[\ud800-\udfff]")
-
-
 def _server_text(value: object) -> str:
     """A string field of a response as valid Unicode. JSON escapes can carry lone surrogates ("\\ud800"), which
     no UTF-8 file can hold: they would break the cache checksum and the transcript writer."""
-    return _LONE_SURROGATE.sub("\ufffd", value) if isinstance(value, str) else ""
+    return valid_unicode(value) if isinstance(value, str) else ""
 
 
 def _count(value: object) -> int:
