@@ -13,8 +13,9 @@ import shutil
 from pathlib import Path
 
 import pytest
+from fast_support import forked_cli
 from fault_support import cli_in_process
-from reliability_support import assert_one_line_error, cache_env_sharing_embeddings, cli, fixture_subset
+from reliability_support import assert_one_line_error, cache_env_sharing_embeddings, fixture_subset
 
 from vlmproprio.episodes import write_manifest
 
@@ -26,8 +27,8 @@ NESTED_100 = "[" * 100 + "]" * 100
 @pytest.fixture(scope="module")
 def base(tmp_path_factory):
     """A recorded and scored run to damage. Made through the CLI in this process: only the commands that meet
-    the damage are what is checked (they stay subprocesses, whose stack is the CLI's alone), and scoring in a
-    subprocess imported torch and the encoder again (~10 CPU s)."""
+    the damage are what is checked (they stay processes of their own, whose stack is the CLI's alone), and
+    scoring in a subprocess imported torch and the encoder again (~10 CPU s)."""
     root = tmp_path_factory.mktemp("nested")
     fixtures = fixture_subset(root / "fixtures", ["door_00"])
     env = cache_env_sharing_embeddings(root, tmp_path_factory)
@@ -101,7 +102,10 @@ def test_nested_json_is_one_line_naming_the_file(base, case, depth, figures):
     shutil.copytree(run, work / "run")
     damage, command = CASES[case]
     damaged = damage(work, DEEP if depth == "100000" else NESTED_100)
-    proc = cli([str(a) for a in command(work)], cwd=work, env={**env, "VLMPROPRIO_FIXTURES": str(work / "fixtures")})
+    # forked from the import-once server (fast_support): its own process, environment and folder, as
+    # `python -m vlmproprio.cli` would be, without ~0.6 CPU s of imports in each of the 20 cases
+    env = {**env, "VLMPROPRIO_FIXTURES": str(work / "fixtures")}
+    proc = forked_cli(command(work), root / "logs", cwd=work, env=env)
     assert "RecursionError" not in proc.stderr
     line = assert_one_line_error(proc, damaged.name)
     assert len(line) < 600, line
