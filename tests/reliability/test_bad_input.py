@@ -1,11 +1,12 @@
-"""Item 5, bad input at the edges, through the real CLI in subprocesses.
+"""Item 5, bad input at the edges, through the real CLI in processes of its own.
 
 Every case is a user's mistake or a damaged input: unknown or unsafe model names, episode ids with path
 separators or '..', missing/extra/damaged episode files, NaN and wrong-shaped states, a truncated PNG,
 wrong flag values. Each must end in exactly one ``vlmproprio: error:`` line that says what is wrong, exit
 code 2, and no traceback; ``--debug`` must show the traceback. Runs happen in a sandbox (its own cwd, HOME,
 TMPDIR, cache root), snapshotted before and after: a refused run touches nothing at all, and an accepted run
-with an odd model name writes only inside its run and cache directories.
+with an odd model name writes only inside its run and cache directories. Those snapshotted runs are fresh
+interpreters; the others, which check exit codes and error lines, are forked from an import-once server.
 
 The pytest plugin's options (``pytest benchmark/ --model nope`` ...) are usage errors (exit 4), not crashes.
 """
@@ -19,6 +20,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from fast_support import forked_cli
 from reliability_support import (
     REPO,
     assert_argparse_error,
@@ -58,11 +60,20 @@ def sandbox(tmp_path, clean_fixtures):
     return tmp_path, env
 
 
-def run_in(sandbox, *args: str, debug: bool = False) -> subprocess.CompletedProcess:
+def run_in(sandbox, *args: str, debug: bool = False, fresh: bool = False) -> subprocess.CompletedProcess:
+    """``vlmproprio run ARGS`` in the sandbox's folder and environment, as a process of its own.
+
+    By default it is forked from the import-once server (fast_support): its own PID, environment, folder and
+    whole stdout/stderr, what a check of exit code and error lines needs, without ~0.4 CPU s of imports.
+    ``fresh``: a new interpreter, for the tests that snapshot the sandbox: an interpreter that started
+    elsewhere may have read HOME or TMPDIR (tempfile's cached folder, a library's config folder) before the
+    sandbox's were set, and its files would then land outside the snapshot."""
     root, env = sandbox
     base = ["run", "--fixtures", str(root / "fixtures"), "--no-progress", "--out", "run", "--cache-dir", "cache"]
     argv = (["--debug"] if debug else []) + base + list(args)
-    return cli(argv, cwd=root / "work", env=env)
+    if fresh:
+        return cli(argv, cwd=root / "work", env=env)
+    return forked_cli(argv, root / "logs", cwd=root / "work", env=env)
 
 
 def _with_defaults(args: tuple[str, ...]) -> list[str]:
@@ -96,7 +107,7 @@ UNSAFE_EPISODES = ["../door_00", "door_00/../../x", "/etc", "..", "door_00/frame
 @pytest.mark.parametrize("name", list(UNSAFE_MODELS), ids=[repr(n) for n in UNSAFE_MODELS])
 def test_unknown_and_unsafe_model_names_are_refused_and_touch_nothing(sandbox, name, figures):
     before = tree_snapshot(sandbox[0])
-    proc = run_in(sandbox, "--model", name, "--conditions", "none")
+    proc = run_in(sandbox, "--model", name, "--conditions", "none", fresh=True)
     assert_one_line_error(proc, UNSAFE_MODELS[name])
     assert changed_paths(before, tree_snapshot(sandbox[0])) == set()
     figures("bad input: unsafe names", cases=1, refused_in_one_line=1, files_touched=0)
@@ -105,7 +116,7 @@ def test_unknown_and_unsafe_model_names_are_refused_and_touch_nothing(sandbox, n
 @pytest.mark.parametrize("episode", UNSAFE_EPISODES)
 def test_episode_ids_with_path_parts_are_refused_and_touch_nothing(sandbox, episode, figures):
     before = tree_snapshot(sandbox[0])
-    proc = run_in(sandbox, "--model", "reference", "--conditions", "none", "--episodes", episode)
+    proc = run_in(sandbox, "--model", "reference", "--conditions", "none", "--episodes", episode, fresh=True)
     assert_one_line_error(proc, "unknown episode(s)", episode)
     assert changed_paths(before, tree_snapshot(sandbox[0])) == set()
     figures("bad input: unsafe names", cases=1, refused_in_one_line=1, files_touched=0)
@@ -118,7 +129,7 @@ def test_an_odd_but_valid_model_name_writes_only_into_run_and_cache(sandbox):
     with FakeOpenAIServer(responder=caption_responder) as server:
         proc = run_in(
             sandbox, "--model", "openai:org/model:v1", "--base-url", server.base_url,
-            "--episodes", "door_00", "--conditions", "none", "--frame-stride", "3",
+            "--episodes", "door_00", "--conditions", "none", "--frame-stride", "3", fresh=True,
         )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     changed = changed_paths(before, tree_snapshot(root))
@@ -246,7 +257,7 @@ def test_flags_argparse_refuses_are_its_usage_error(sandbox, args, message):
 )
 def test_other_commands_fail_in_one_line(sandbox, argv, message, figures):
     root, env = sandbox
-    assert_one_line_error(cli(argv, cwd=root / "work", env=env), message)
+    assert_one_line_error(forked_cli(argv, root / "logs", cwd=root / "work", env=env), message)
     figures("bad input: flags and commands", cases=1, one_line_errors=1, tracebacks=0)
 
 

@@ -8,7 +8,8 @@ import subprocess
 import sys
 
 import pytest
-from reliability_support import REPO, assert_one_line_error, cli, cli_env, fixture_subset
+from fast_support import forked_cli
+from reliability_support import REPO, assert_one_line_error, cli_env, fixture_subset
 
 RUN_ARGS = ("--episodes", "door_00", "--conditions", "none", "--frame-stride", "3", "--no-progress")
 
@@ -21,7 +22,13 @@ def test_a_bad_character_in_the_api_key_is_a_clear_error(tmp_path, key, said, fi
     pytest.importorskip("openai")
     fixtures = fixture_subset(tmp_path / "fixtures", ["door_00"])
     env = cli_env(OPENAI_API_KEY=key, VLMPROPRIO_CACHE=str(tmp_path / "cache"))
-    proc = cli(["run", "--model", "openai:m", "--fixtures", fixtures, *RUN_ARGS, "--out", tmp_path / "run"], env=env)
+    # forked from the import-once server (fast_support): a process of its own with this environment, without
+    # ~1.5 CPU s of imports (the openai SDK's among them) that say nothing about the key
+    proc = forked_cli(
+        ["run", "--model", "openai:m", "--fixtures", fixtures, *RUN_ARGS, "--out", tmp_path / "run"],
+        tmp_path / "logs",
+        env=env,
+    )
     line = assert_one_line_error(proc, "OPENAI_API_KEY", said)
     assert "reach" not in line and "UnicodeEncodeError" not in proc.stderr
     assert key.strip() not in proc.stderr  # the key itself is never shown
@@ -31,7 +38,8 @@ def test_a_bad_character_in_the_api_key_is_a_clear_error(tmp_path, key, said, fi
 @pytest.mark.parametrize("sep", ["\u2028", "\u2029", "\u0085"])
 def test_a_line_separator_in_a_model_name_is_refused_in_one_line(tmp_path, sep, figures):
     fixtures = fixture_subset(tmp_path / "fixtures", ["door_00"])
-    proc = cli(["run", "--model", f"openai:gpt{sep}4o", "--fixtures", fixtures, *RUN_ARGS, "--out", tmp_path / "r"])
+    argv = ["run", "--model", f"openai:gpt{sep}4o", "--fixtures", fixtures, *RUN_ARGS, "--out", tmp_path / "r"]
+    proc = forked_cli(argv, tmp_path / "logs")  # a process of its own, forked from the import-once server
     assert_one_line_error(proc, "model name")
     assert len(proc.stderr.splitlines()) == 1 and sep not in proc.stderr
     figures("small items", cases=1, fixed=1)
