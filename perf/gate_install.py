@@ -1,7 +1,7 @@
 """The regression gates without torch, from a fresh clone: copy the checkout, make a venv, install the
 ``bench`` extra, check torch / transformers / sentence-transformers are absent, run ``pytest benchmark/``.
 
-    python perf/gate_install.py [--model reference] [--model tiny-qwen2-vl] [--keep DIR] [--out FILE]
+    python perf/gate_install.py [--model reference] [--model tiny-qwen2-vl] [--keep DIR] [--out FILE] [--outer-pip]
 
 Target (issue 17): install + ``pytest benchmark/ --model reference`` <= 60 s on 2 cores. pip's download cache
 is used as pip uses it (a warm cache is the usual CI case; ``--no-cache`` measures a cold one). Also prints
@@ -40,12 +40,21 @@ def _site_packages_mb(venv: Path) -> float:
 
 
 def install_and_gate(
-    dest: Path, models: list[str], *, pip_cache: bool = True, compile_pyc: bool = True, extra_pytest: tuple = ()
+    dest: Path,
+    models: list[str],
+    *,
+    pip_cache: bool = True,
+    compile_pyc: bool = True,
+    outer_pip: bool = False,
+    extra_pytest: tuple = (),
 ) -> dict:
     """Clone (copy) the checkout into ``dest``, install it with the bench extra, run the gates; the numbers.
 
     ``compile_pyc=False`` installs with ``pip --no-compile``: pip then skips byte-compiling every installed module
-    (pandas, numpy, ...: about half of the install's CPU time) and Python compiles only the ones the gates import."""
+    (pandas, numpy, ...: about half of the install's CPU time) and Python compiles only the ones the gates import.
+    ``outer_pip=True`` makes the venv ``--without-pip`` and installs into it with this Python's pip
+    (``pip --python VENV/bin/python``): the same packages land in the venv, without ensurepip installing (and
+    byte-compiling) a pip the gates never use. The default keeps what a user's CI does: a venv with its own pip."""
     clone, venv = dest / "clone", dest / "venv"
     t0 = time.perf_counter()
     for name in CLONE:
@@ -61,14 +70,16 @@ def install_and_gate(
     env |= {"VLMPROPRIO_CACHE": str(dest / "cache"), "PIP_DISABLE_PIP_VERSION_CHECK": "1"}
     if not pip_cache:
         env["PIP_NO_CACHE_DIR"] = "1"
-    t_venv, proc = _run([sys.executable, "-m", "venv", str(venv)], clone, env)
+    without_pip = ["--without-pip"] if outer_pip else []
+    t_venv, proc = _run([sys.executable, "-m", "venv", *without_pip, str(venv)], clone, env)
     res: dict = {"models": models, "venv_s": t_venv}
     if proc.returncode:
         return res | {"ok": False, "step": "venv", "output": proc.stderr[-4000:]}
     py = str(venv / "bin" / "python")
     # editable, as scripts/setup.sh installs it: the clone's benchmark/ and fixtures/ are what the gates use
     no_compile = [] if compile_pyc else ["--no-compile"]
-    t_pip, proc = _run([py, "-m", "pip", "install", "-q", *no_compile, "-e", ".[bench]"], clone, env)
+    pip = [sys.executable, "-m", "pip", "--python", py] if outer_pip else [py, "-m", "pip"]
+    t_pip, proc = _run([*pip, "install", "-q", *no_compile, "-e", ".[bench]"], clone, env)
     res |= {"install_s": t_pip}
     if proc.returncode:
         return res | {"ok": False, "step": "pip install", "output": (proc.stdout + proc.stderr)[-4000:]}
@@ -93,13 +104,20 @@ def main(argv=None) -> int:
     ap.add_argument("--keep", type=Path, help="work in this folder and keep it (default: a temporary one)")
     ap.add_argument("--no-cache", action="store_true", help="pip without its download cache (a cold CI runner)")
     ap.add_argument("--no-compile", action="store_true", help="pip install --no-compile (no .pyc written up front)")
+    ap.add_argument(
+        "--outer-pip",
+        action="store_true",
+        help="venv --without-pip, installed into with this Python's pip (skips ensurepip; the tests use it)",
+    )
     ap.add_argument("--json", action="store_true", help="print only the result as one JSON line")
     ap.add_argument("--out", type=Path, help="also write the numbers as JSON here")
     args = ap.parse_args(argv)
     models = args.model or ["reference"]
     with tempfile.TemporaryDirectory(prefix="vlmproprio-gates-") as tmp:
         dest = args.keep or Path(tmp)
-        res = install_and_gate(dest, models, pip_cache=not args.no_cache, compile_pyc=not args.no_compile)
+        res = install_and_gate(
+            dest, models, pip_cache=not args.no_cache, compile_pyc=not args.no_compile, outer_pip=args.outer_pip
+        )
     if args.json:
         print(json.dumps(res, sort_keys=True))
         return 0 if res["ok"] else 1

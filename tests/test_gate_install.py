@@ -18,13 +18,16 @@ def test_gates_pass_in_a_fresh_venv_without_torch(tmp_path):
     """perf/gate_install.py copies the checkout, installs ``.[bench]`` into a new venv and runs
     ``pytest benchmark/ --model reference --model tiny-qwen2-vl`` there (replay mode, fresh embedding cache).
     ``--no-compile``: pip does not byte-compile every installed module up front (about half of the install's CPU
-    time); the install is as real, and the gates compile what they import."""
+    time); the install is as real, and the gates compile what they import. ``--outer-pip``: the venv gets no pip
+    of its own (ensurepip installs and byte-compiles pip: seconds of CPU the gates never use); this Python's pip
+    installs ``.[bench]`` into it (``pip --python``), the same packages as the venv's own pip would."""
     proc = subprocess.run(
         [
             sys.executable,
             str(ROOT / "perf" / "gate_install.py"),
             "--json",
             "--no-compile",
+            "--outer-pip",
             "--keep",
             str(tmp_path),
             "--model",

@@ -132,20 +132,32 @@ def test_the_command_line_section_runs_from_another_folder(tmp_path: Path) -> No
     assert "match the keys the run recorded, 0 differ" in outputs[-1]
 
 
-def test_fixtures_are_found_from_a_subfolder_of_the_repository(tmp_path: Path) -> None:
-    env = _env(tmp_path)
-    out, models = _vps([(REPO / "benchmark", ["verify"]), (REPO / "docs", ["models", "--model", "tiny-qwen2-vl"])], env)
+@pytest.fixture(scope="module")
+def located(tmp_path_factory) -> list[tuple[int, str, str]]:
+    """``verify`` from a folder outside any repository (first: nothing an earlier command did can help it), then
+    ``verify`` from benchmark/ and ``models`` from docs/, all in one child (one interpreter start and one import
+    of vlmproprio for the three, not two children): (exit code, stdout, stderr) of each."""
+    outside = tmp_path_factory.mktemp("outside")
+    commands = [
+        (outside, ["verify"]),
+        (REPO / "benchmark", ["verify"]),
+        (REPO / "docs", ["models", "--model", "tiny-qwen2-vl"]),
+    ]
+    return _batch(VLMPROPRIO_MAIN, commands, _env(outside))
+
+
+def test_fixtures_are_found_from_a_subfolder_of_the_repository(located) -> None:
+    for code, out, err in located[1:]:
+        assert code == 0, f"{out[-2000:]}\n{err[-2000:]}"
+    (_, out, _), (_, models, _) = located[1:]
     assert "22" in out or "episodes" in out
     assert f"cassette: {REPO / 'fixtures' / 'responses' / 'tiny-qwen2-vl.jsonl'}" in models
 
 
-def test_outside_any_repository_the_error_says_what_to_do(tmp_path: Path) -> None:
-    env = _env(tmp_path)
-    proc = subprocess.run(
-        [sys.executable, "-m", "vlmproprio.cli", "verify"], cwd=tmp_path, env=env, capture_output=True, text=True
-    )
+def test_outside_any_repository_the_error_says_what_to_do(located) -> None:
+    code, _, err = located[0]
     # the source checkout's fixtures are the last resort (an editable install); a wheel says what to do
-    assert proc.returncode == 0 or "pass --fixtures DIR or set VLMPROPRIO_FIXTURES" in proc.stderr
+    assert code == 0 or "pass --fixtures DIR or set VLMPROPRIO_FIXTURES" in err
 
 
 @pytest.fixture(scope="module")
