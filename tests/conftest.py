@@ -12,13 +12,23 @@ from pathlib import Path
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
-# Tests never read or write a developer's caches (responses, embeddings, tiny models built elsewhere).
-os.environ["VLMPROPRIO_CACHE"] = tempfile.mkdtemp(prefix="vlmproprio-test-cache-")
+# Tests never read or write a developer's caches (responses, embeddings, tiny models built elsewhere). One cache
+# root per test session: the process that makes it owns it (and removes it at the end); pytest-xdist's workers,
+# its direct children, inherit it, so the session's tiny checkpoints (about 5 CPU s each) and embeddings are made
+# once, not once per worker. Everything in it is safe to share between processes: diskcache databases, and tiny
+# builds renamed into place whole. A pytest started by a test is no worker of this session: it makes its own.
+_OWNER = "VLMPROPRIO_TEST_CACHE_OWNER"
+_owner_pid, _, _owned = os.environ.get(_OWNER, "").partition(":")
+if not (os.environ.get("PYTEST_XDIST_WORKER") and _owner_pid == str(os.getppid()) and os.path.isdir(_owned)):
+    _owned = tempfile.mkdtemp(prefix="vlmproprio-test-cache-")
+    os.environ[_OWNER] = f"{os.getpid()}:{_owned}"
+os.environ["VLMPROPRIO_CACHE"] = _owned
 
-import numpy as np
-import pytest
+# (imports after the environment is set up: E402)
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
 
-from vlmproprio.chat import ChatRequest, GenerationConfig, ImagePart, Message, RequestTag, TextPart
+from vlmproprio.chat import ChatRequest, GenerationConfig, ImagePart, Message, RequestTag, TextPart  # noqa: E402
 
 SESSION_CACHE = Path(os.environ["VLMPROPRIO_CACHE"])
 
@@ -73,9 +83,10 @@ def torch_one_thread():
 
 @pytest.fixture(scope="session")
 def tiny_model(torch_one_thread):
-    """The tiny random checkpoint of a family (about 1 MB), built once per test session (per xdist worker) in the
-    session's cache root ($VLMPROPRIO_CACHE/models), where the registry's ``tiny-*`` models look for it: a test
-    that runs ``tiny-qwen2-vl`` by name and asks for this fixture finds the build instead of making its own."""
+    """The tiny random checkpoint of a family (about 1 MB), built once per test session (by the first xdist worker
+    that needs it) in the session's cache root ($VLMPROPRIO_CACHE/models), where the registry's ``tiny-*`` models
+    look for it: a test that runs ``tiny-qwen2-vl`` by name and asks for this fixture finds the build instead of
+    making its own."""
     from vlmproprio.backends.tiny import ensure_tiny_model
 
     return lambda family: ensure_tiny_model(family, SESSION_CACHE)
@@ -105,7 +116,8 @@ def vlmproprio_home(tmp_path, monkeypatch):
 
 
 def pytest_sessionfinish(session, exitstatus) -> None:
-    shutil.rmtree(SESSION_CACHE, ignore_errors=True)
+    if os.environ.get(_OWNER) == f"{os.getpid()}:{SESSION_CACHE}":  # the owner, not a worker
+        shutil.rmtree(SESSION_CACHE, ignore_errors=True)
 
 
 def pytest_collection_modifyitems(config, items) -> None:
