@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import atexit
 import io
 import os
 import shutil
@@ -13,15 +14,25 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
 # Tests never read or write a developer's caches (responses, embeddings, tiny models built elsewhere). One cache
-# root per test session: the process that makes it owns it (and removes it at the end); pytest-xdist's workers,
+# root per test session: the process that makes it owns it (and removes it at exit); pytest-xdist's workers,
 # its direct children, inherit it, so the session's tiny checkpoints (about 5 CPU s each) and embeddings are made
 # once, not once per worker. Everything in it is safe to share between processes: diskcache databases, and tiny
 # builds renamed into place whole. A pytest started by a test is no worker of this session: it makes its own.
 _OWNER = "VLMPROPRIO_TEST_CACHE_OWNER"
+
+
+def _remove_if_owner(owner: int, root: str) -> None:
+    """At exit, not at pytest_sessionfinish: a run that stops on a usage error never finishes a session. Only in
+    the owner: a child forked from it inherits the handler."""
+    if os.getpid() == owner:
+        shutil.rmtree(root, ignore_errors=True)
+
+
 _owner_pid, _, _owned = os.environ.get(_OWNER, "").partition(":")
 if not (os.environ.get("PYTEST_XDIST_WORKER") and _owner_pid == str(os.getppid()) and os.path.isdir(_owned)):
     _owned = tempfile.mkdtemp(prefix="vlmproprio-test-cache-")
     os.environ[_OWNER] = f"{os.getpid()}:{_owned}"
+    atexit.register(_remove_if_owner, os.getpid(), _owned)
 os.environ["VLMPROPRIO_CACHE"] = _owned
 
 # (imports after the environment is set up: E402)
@@ -113,11 +124,6 @@ def vlmproprio_home(tmp_path, monkeypatch):
     home = tmp_path / "home"
     monkeypatch.setenv("VLMPROPRIO_CACHE", str(home))
     return home
-
-
-def pytest_sessionfinish(session, exitstatus) -> None:
-    if os.environ.get(_OWNER) == f"{os.getpid()}:{SESSION_CACHE}":  # the owner, not a worker
-        shutil.rmtree(SESSION_CACHE, ignore_errors=True)
 
 
 def pytest_collection_modifyitems(config, items) -> None:
