@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import base64
-import importlib.util
 import logging
 import secrets
 import time
 
 import pytest
 
+from extras import needs_openai
 from vlmproprio.answering import Answerer
 from vlmproprio.backends.base import BackendError
 from vlmproprio.cache import ResponseCache, canonical_json
@@ -17,10 +17,7 @@ from vlmproprio.chat import GenerationConfig, RequestTag
 from vlmproprio.testing.openai_server import FakeOpenAIServer, expected_answer
 
 # checked, not imported: collecting this module on every xdist worker must not cost the SDK's ~1 CPU s
-pytestmark = pytest.mark.skipif(
-    importlib.util.find_spec("openai") is None,
-    reason="the openai backend needs the openai SDK (pip install 'vlmproprio[openai]')",
-)
+pytestmark = needs_openai
 
 KEY_ENV = "VLMPROPRIO_TEST_OPENAI_KEY"
 

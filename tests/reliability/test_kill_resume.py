@@ -16,7 +16,6 @@ at a seeded number of committed entries, so the kills land inside the stream of 
 
 from __future__ import annotations
 
-import importlib.util
 import random
 import sqlite3
 import time
@@ -33,13 +32,11 @@ from reliability_support import (
     transcripts_of,
 )
 
+from extras import needs_openai
 from vlmproprio.testing.openai_server import FakeOpenAIServer
 
 # checked, not imported: collecting this module on every xdist worker must not cost the SDK's ~1 CPU s
-pytestmark = pytest.mark.skipif(
-    importlib.util.find_spec("openai") is None,
-    reason="the openai backend needs the openai SDK (pip install 'vlmproprio[openai]')",
-)
+pytestmark = needs_openai
 
 KILLS = 24
 KILLS_PER_CHAIN = 3

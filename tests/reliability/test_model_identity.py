@@ -8,20 +8,18 @@ would delete another model's answers (the old advice was ``--replace``).
 
 from __future__ import annotations
 
-import importlib.util
 import json
 
 import pytest
 from fault_support import cli_in_process
 from reliability_support import assert_one_line_error, caption_responder, cli, cli_env, fixture_subset
 
+from extras import needs_openai
 from vlmproprio.models import resolve_model
 from vlmproprio.testing.openai_server import FakeOpenAIServer
 
 # checked, not imported: collecting this module on every xdist worker must not cost the SDK's ~1 CPU s
-pytestmark = pytest.mark.skipif(
-    importlib.util.find_spec("openai") is None, reason="the openai backend needs the openai SDK"
-)
+pytestmark = needs_openai
 
 PAIRS = [
     ("openai:org/m", "openai:org_m"),

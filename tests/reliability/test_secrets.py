@@ -15,7 +15,6 @@ then the run's HTML report (page, Markdown, figures) is written and searched too
 from __future__ import annotations
 
 import contextlib
-import importlib.util
 import secrets
 import sqlite3
 import zlib
@@ -24,14 +23,12 @@ from pathlib import Path
 import pytest
 from reliability_support import all_files, caption_responder, cli, cli_env, fixture_subset
 
+from extras import needs_openai
 from vlmproprio.testing import openai_server
 from vlmproprio.testing.openai_server import FakeOpenAIServer
 
 # checked, not imported: collecting this module on every xdist worker must not cost the SDK's ~1 CPU s
-pytestmark = pytest.mark.skipif(
-    importlib.util.find_spec("openai") is None,
-    reason="the openai backend needs the openai SDK (pip install 'vlmproprio[openai]')",
-)
+pytestmark = needs_openai
 
 MODEL = "openai:fake-vlm"
 DEBUG_LOGGING = "import logging, sys\nlogging.basicConfig(level=logging.DEBUG, stream=sys.stderr)"

@@ -22,7 +22,6 @@ one request's retries, not one per request, is checked by counting the retries.
 
 from __future__ import annotations
 
-import importlib.util
 import time
 from pathlib import Path
 
@@ -37,14 +36,12 @@ from reliability_support import (
     transcripts_of,
 )
 
+from extras import needs_openai
 from vlmproprio.testing import openai_server
 from vlmproprio.testing.openai_server import FakeOpenAIServer
 
 # checked, not imported: collecting this module on every xdist worker must not cost the SDK's ~1 CPU s
-pytestmark = pytest.mark.skipif(
-    importlib.util.find_spec("openai") is None,
-    reason="the openai backend needs the openai SDK (pip install 'vlmproprio[openai]')",
-)
+pytestmark = needs_openai
 
 MODEL = "openai:fake-vlm"
 BACKOFF = 0.1  # of the SDK's and the backend's backoff between retries (Retry-After is still honoured as sent)
