@@ -219,12 +219,12 @@ def set_cache_row(cache_dir: Path, rowid: int, value: bytes, mode: int | None = 
             conn.execute("UPDATE Cache SET value = ?, mode = ? WHERE rowid = ?", (value, mode, rowid))
 
 
-def cache_env_sharing_embeddings(root: Path) -> dict[str, str]:
+def cache_env_sharing_embeddings(root: Path, tmp_path_factory) -> dict[str, str]:
     """A CLI environment whose cache root is ``root/cache`` (its own response cache) but whose embedding cache
-    is the test session's (tests/conftest.py; shared by its xdist workers): sentence embeddings are
-    deterministic, and computing them loads the encoder (~10 s) in every module that scores otherwise."""
-    shared = Path(os.environ["VLMPROPRIO_TEST_CACHE_OWNER"].partition(":")[2]) / "embeddings"
-    shared.mkdir(parents=True, exist_ok=True)
+    is shared by the session: sentence embeddings are deterministic, and computing them loads the encoder
+    (~10 s) in every module that scores otherwise."""
+    shared = tmp_path_factory.getbasetemp() / "shared-embeddings"
+    shared.mkdir(exist_ok=True)
     (root / "cache").mkdir(parents=True, exist_ok=True)
     (root / "cache" / "embeddings").symlink_to(shared, target_is_directory=True)
     return cli_env(VLMPROPRIO_CACHE=str(root / "cache"))

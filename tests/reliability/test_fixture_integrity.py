@@ -42,11 +42,11 @@ def _cache_env(tmp_path: Path) -> dict[str, str]:
     "where",
     ["--out inside", "--cache-dir inside", "fixtures inside --out", "score --embedding-cache", "report --out"],
 )
-def test_output_and_caches_inside_the_fixtures_are_refused(tmp_path, fixtures, where, figures):
+def test_output_and_caches_inside_the_fixtures_are_refused(tmp_path, tmp_path_factory, fixtures, where, figures):
     env = _cache_env(tmp_path)
     if where.startswith("score") or where.startswith("report"):
         # report scores the run before it meets --out: the session's shared embeddings spare it the encoder
-        env = {"VLMPROPRIO_CACHE": cache_env_sharing_embeddings(tmp_path)["VLMPROPRIO_CACHE"]}
+        env = {"VLMPROPRIO_CACHE": cache_env_sharing_embeddings(tmp_path, tmp_path_factory)["VLMPROPRIO_CACHE"]}
         run = ["run", *RUN_ARGS, "--fixtures", fixtures, "--out", tmp_path / "run", "--no-progress"]
         proc = cli_in_process(run, env=env)
         assert proc.returncode == 0, proc.stderr

@@ -31,7 +31,7 @@ def base(tmp_path_factory):
     scoring in a subprocess imported torch and the encoder again (~10 CPU s)."""
     root = tmp_path_factory.mktemp("nested")
     fixtures = fixture_subset(root / "fixtures", ["door_00"])
-    env = cache_env_sharing_embeddings(root)
+    env = cache_env_sharing_embeddings(root, tmp_path_factory)
     run = root / "run"
     for args in (
         ["run", *RUN_ARGS, "--fixtures", fixtures, "--out", run, "--no-progress", "--mode", "record"],

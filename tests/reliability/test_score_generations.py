@@ -37,7 +37,7 @@ def scored(tmp_path_factory):
     root = tmp_path_factory.mktemp("generations")
     _LOGS[:] = [root / "logs"]
     fixtures = fixture_subset(root / "fixtures", ["door_00", "door_01"])
-    env = cache_env_sharing_embeddings(root)
+    env = cache_env_sharing_embeddings(root, tmp_path_factory)
     run = root / "run"
     proc = cli(["run", *RUN_ARGS, "--fixtures", fixtures, "--out", run, "--no-progress"], env=env)
     assert proc.returncode == 0, proc.stderr

@@ -72,7 +72,7 @@ def base(tmp_path_factory):
     the encoder again (~10 CPU s)."""
     root = tmp_path_factory.mktemp("writes")
     fixtures = fixture_subset(root / "fixtures", ["door_00"])
-    env = cache_env_sharing_embeddings(root)
+    env = cache_env_sharing_embeddings(root, tmp_path_factory)
     run = root / "run"
     for args in (["run", *RUN_ARGS, "--fixtures", fixtures, "--out", run, "--no-progress"], ["score", run]):
         proc = cli_in_process(args, env={"VLMPROPRIO_CACHE": env["VLMPROPRIO_CACHE"]})
