@@ -13,27 +13,20 @@ from pathlib import Path
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
-# Tests never read or write a developer's caches (responses, embeddings, tiny models built elsewhere). One cache
-# root per test session: the process that makes it owns it (and removes it at exit); pytest-xdist's workers,
-# its direct children, inherit it, so the session's tiny checkpoints (about 5 CPU s each) and embeddings are made
-# once, not once per worker. Everything in it is safe to share between processes: diskcache databases, and tiny
-# builds renamed into place whole. A pytest started by a test is no worker of this session: it makes its own.
-_OWNER = "VLMPROPRIO_TEST_CACHE_OWNER"
+# Tests never read or write a developer's caches (responses, embeddings, tiny models built elsewhere). Each test
+# process (each xdist worker) has its own cache root: a root shared by the workers was tried and a clean-clone
+# run then found its embedding database malformed (perf/README.md §10).
 
 
 def _remove_if_owner(owner: int, root: str) -> None:
     """At exit, not at pytest_sessionfinish: a run that stops on a usage error never finishes a session. Only in
-    the owner: a child forked from it inherits the handler."""
+    the process that made the root: a child forked from it inherits the handler."""
     if os.getpid() == owner:
         shutil.rmtree(root, ignore_errors=True)
 
 
-_owner_pid, _, _owned = os.environ.get(_OWNER, "").partition(":")
-if not (os.environ.get("PYTEST_XDIST_WORKER") and _owner_pid == str(os.getppid()) and os.path.isdir(_owned)):
-    _owned = tempfile.mkdtemp(prefix="vlmproprio-test-cache-")
-    os.environ[_OWNER] = f"{os.getpid()}:{_owned}"
-    atexit.register(_remove_if_owner, os.getpid(), _owned)
-os.environ["VLMPROPRIO_CACHE"] = _owned
+os.environ["VLMPROPRIO_CACHE"] = tempfile.mkdtemp(prefix="vlmproprio-test-cache-")
+atexit.register(_remove_if_owner, os.getpid(), os.environ["VLMPROPRIO_CACHE"])
 
 # (imports after the environment is set up: E402)
 import numpy as np  # noqa: E402
@@ -94,10 +87,9 @@ def torch_one_thread():
 
 @pytest.fixture(scope="session")
 def tiny_model(torch_one_thread):
-    """The tiny random checkpoint of a family (about 1 MB), built once per test session (by the first xdist worker
-    that needs it) in the session's cache root ($VLMPROPRIO_CACHE/models), where the registry's ``tiny-*`` models
-    look for it: a test that runs ``tiny-qwen2-vl`` by name and asks for this fixture finds the build instead of
-    making its own."""
+    """The tiny random checkpoint of a family (about 1 MB), built once per test session (per xdist worker) in the
+    session's cache root ($VLMPROPRIO_CACHE/models), where the registry's ``tiny-*`` models look for it: a test
+    that runs ``tiny-qwen2-vl`` by name and asks for this fixture finds the build instead of making its own."""
     from vlmproprio.backends.tiny import ensure_tiny_model
 
     return lambda family: ensure_tiny_model(family, SESSION_CACHE)
