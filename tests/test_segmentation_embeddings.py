@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import multiprocessing
+import random
+import sqlite3
 
 import diskcache
 import numpy as np
@@ -39,6 +42,54 @@ def test_store_refuses_pickled_rows(tmp_path):
         store.get_many("enc", ["evil"])
     with EmbeddingStore(d) as store, pytest.raises(EmbeddingError, match="vectors"):
         store.put_many("enc", {"x": "not a vector"})  # type: ignore[dict-item]
+
+
+def _vector(text: str) -> np.ndarray:
+    seed = int.from_bytes(text.encode("utf-8").ljust(8, b"_")[:8], "little")
+    return np.random.default_rng(seed).standard_normal(16).astype(np.float32)
+
+
+def _store_worker(directory: str, seed: int, texts: list[str], barrier, results) -> None:
+    """Stores the texts' vectors in small transactions and reads back all it stored so far after each; puts
+    (seed, vectors read back at the end) or (seed, the error) on ``results``, so the test never waits on a
+    worker that died."""
+    order = list(texts)
+    random.Random(seed).shuffle(order)  # overlapping texts, another order per process
+    try:
+        with EmbeddingStore(directory) as store:
+            barrier.wait(timeout=60)  # all four open the store, then start together
+            for start in range(0, len(order), 5):  # small transactions, so the writers interleave
+                store.put_many("enc", {t: _vector(t) for t in order[start : start + 5]})
+                got = store.get_many("enc", order[: start + 5])
+                lost = [t for t in order[: start + 5] if t not in got or got[t].tobytes() != _vector(t).tobytes()]
+                if lost:
+                    raise AssertionError(f"lost or changed after storing: {lost}")
+        results.put((seed, len(got)))
+    except Exception as exc:  # reported to the test, which fails on it
+        results.put((seed, f"{type(exc).__name__}: {exc}"))
+
+
+def test_four_processes_share_one_embedding_store(tmp_path):
+    """Parallel scoring runs (a tox matrix, xdist workers) share one embedding cache: the writers interleave,
+    nobody loses or damages a vector, and the SQLite file passes its own integrity check."""
+    texts, procs = [f"caption number {i}" for i in range(60)], 4
+    ctx = multiprocessing.get_context("spawn")  # no fork: the parent may hold open databases
+    barrier, results = ctx.Barrier(procs), ctx.Queue()
+    args = (str(tmp_path / "emb"), texts, barrier, results)
+    workers = [ctx.Process(target=_store_worker, args=(args[0], seed, *args[1:])) for seed in range(procs)]
+    for w in workers:
+        w.start()
+    got = sorted(results.get(timeout=120) for _ in workers)
+    for w in workers:
+        w.join(timeout=60)
+        assert w.exitcode == 0  # no "database is locked", no failed read-back
+    assert got == [(seed, len(texts)) for seed in range(procs)]
+    with sqlite3.connect(tmp_path / "emb" / "cache.db") as db:
+        assert db.execute("PRAGMA integrity_check").fetchall() == [("ok",)]
+    with EmbeddingStore(tmp_path / "emb") as store:
+        assert len(store) == len(texts)
+        stored = store.get_many("enc", texts)
+        assert all(stored[t].tobytes() == _vector(t).tobytes() for t in texts)
 
 
 def test_cached_embedder_never_loads_an_encoder_when_all_is_cached(tmp_path):
