@@ -59,7 +59,12 @@ print(json.dumps({"import_s": t_import, "run_s": t_run, "score_s": t_score, "hea
 
 
 def _start(
-    model: str, cache_root: Path, out: Path, files: contextlib.ExitStack, episodes: Sequence[str] = (), code=ROOT
+    model: str,
+    cache_root: Path,
+    out: Path,
+    files: contextlib.ExitStack,
+    episodes: Sequence[str] = (),
+    code: Path = ROOT,
 ):
     """The driver of checkout ``code`` started on ``episodes`` (default: all); its stdout and stderr go to
     temporary files in ``files``."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import multiprocessing
 import random
 import sqlite3
@@ -45,7 +46,8 @@ def test_store_refuses_pickled_rows(tmp_path):
 
 
 def _vector(text: str) -> np.ndarray:
-    seed = int.from_bytes(text.encode("utf-8").ljust(8, b"_")[:8], "little")
+    """A vector of its own for each text, the same in every process."""
+    seed = int.from_bytes(hashlib.sha256(text.encode("utf-8")).digest()[:8], "little")
     return np.random.default_rng(seed).standard_normal(16).astype(np.float32)
 
 
@@ -75,8 +77,8 @@ def test_four_processes_share_one_embedding_store(tmp_path):
     texts, procs = [f"caption number {i}" for i in range(60)], 4
     ctx = multiprocessing.get_context("spawn")  # no fork: the parent may hold open databases
     barrier, results = ctx.Barrier(procs), ctx.Queue()
-    args = (str(tmp_path / "emb"), texts, barrier, results)
-    workers = [ctx.Process(target=_store_worker, args=(args[0], seed, *args[1:])) for seed in range(procs)]
+    directory = str(tmp_path / "emb")
+    workers = [ctx.Process(target=_store_worker, args=(directory, s, texts, barrier, results)) for s in range(procs)]
     for w in workers:
         w.start()
     got = sorted(results.get(timeout=120) for _ in workers)
@@ -86,6 +88,7 @@ def test_four_processes_share_one_embedding_store(tmp_path):
     assert got == [(seed, len(texts)) for seed in range(procs)]
     with sqlite3.connect(tmp_path / "emb" / "cache.db") as db:
         assert db.execute("PRAGMA integrity_check").fetchall() == [("ok",)]
+    assert len({_vector(t).tobytes() for t in texts}) == len(texts)  # a swapped vector would show
     with EmbeddingStore(tmp_path / "emb") as store:
         assert len(store) == len(texts)
         stored = store.get_many("enc", texts)
