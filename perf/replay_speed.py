@@ -98,9 +98,9 @@ def measure(model: str, cache_root: Path, out: Path, code: Path = ROOT) -> dict:
 
 def measure_split(model: str, cache_root: Path, tmp: Path, n: int) -> dict:
     """N processes at once, each on every N-th episode (see the module docstring): the parallel ceiling."""
-    from vlmproprio.episodes import load_episodes
+    from vlmproprio.episodes import list_episode_ids
 
-    ids = [e.episode_id for e in load_episodes(FIXTURES)]
+    ids = list_episode_ids(FIXTURES)  # the order load_episodes uses; each process verifies what it loads
     t = time.perf_counter()
     with contextlib.ExitStack() as files:
         started = [_start(model, cache_root, tmp / f"split{n}_{i}", files, ids[i::n]) for i in range(n)]
@@ -163,15 +163,15 @@ def main(argv=None) -> int:
     rows, ratios = [], {}
     for model in args.model or ["tiny-qwen2-vl", "reference"]:
         with tempfile.TemporaryDirectory() as tmp:
-            runs = [(name, i) for i in range(1 + args.repeat) for name in (reversed(checkouts) if i else checkouts)]
-            for name, i in runs + ([("this", "split")] if args.split > 1 else []):
-                cache = Path(tmp) / f"cache-{name}"
-                if i == "split":
-                    r, run = measure_split(model, cache, Path(tmp), args.split), f"warm, {args.split} at once"
-                else:
-                    out = Path(tmp) / f"{name}-run{i}"
-                    r, run = measure(model, cache, out, checkouts[name]), "cold" if i == 0 else "warm"
-                rows.append(_row(model, name, run, r))
+            caches = {name: Path(tmp) / f"cache-{name}" for name in checkouts}
+            for i in range(1 + args.repeat):  # a cold round, then warm rounds; the other checkout first in those
+                for name in reversed(checkouts) if i else checkouts:
+                    r = measure(model, caches[name], Path(tmp) / f"{name}-run{i}", checkouts[name])
+                    rows.append(_row(model, name, "cold" if i == 0 else "warm", r))
+                    emit({"what": "replay", **rows[-1], "score_timing": r["score_timing"]})
+            if args.split > 1:
+                r = measure_split(model, caches["this"], Path(tmp), args.split)
+                rows.append(_row(model, "this", f"warm, {args.split} at once", r))
                 emit({"what": "replay", **rows[-1], "score_timing": r["score_timing"]})
         if args.against:
             ratios[model] = _ratio([r for r in rows if r["model"] == model])
