@@ -212,6 +212,12 @@ def test_cli_score(small_run, capsys):
     assert "verdict synthetic: trajectory_both_vs_none: both > none on final_trajectory_correct (all): " in out
     assert main(["score", str(run.parent / "missing")]) == 2
     assert "run directory not found" in capsys.readouterr().err
+    assert main(["score", str(run), "--embedding-cache", str(cache), "--workers", "2"]) == 0
+    assert "scored 28 transcripts" in capsys.readouterr().out
+    for bad in ("0", "two"):
+        assert main(["score", str(run), "--workers", bad]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--workers must be a whole number of worker processes" in err[0], err
 
 
 class RuleJudge(Backend):
@@ -352,3 +358,68 @@ def test_paired_rows_are_primary_or_exploratory_with_corrected_p(tables, small_r
     assert traj["p_holm"] > 0.05 and traj["verdict"] == "inconclusive"
     csv_header = (small_run[0] / "scores" / "paired.csv").read_text().splitlines()[0].split(",")
     assert {"family", "hypothesis", "p_holm", "q_bh"} <= set(csv_header)
+
+
+# ---------------------------------------------------------------------------------------------- workers
+
+
+def _spy_parts(monkeypatch) -> list[int]:
+    """How many chunks each score_cells call of this test was cut into."""
+    import vlmproprio.evaluation.cells as cells
+
+    parts: list[int] = []
+
+    def spy(*args, **kwargs):
+        out = real(*args, **kwargs)
+        parts.append(len(out))
+        return out
+
+    real = cells.map_chunks
+    monkeypatch.setattr(cells, "map_chunks", spy)
+    return parts
+
+
+def test_any_number_of_workers_gives_the_same_score_files(small_run, monkeypatch):
+    """Missing frames and scenes, one model: cut down to one transcript per worker."""
+    run, _ = small_run
+    monkeypatch.setattr("vlmproprio.evaluation.cells.MIN_CELLS_PER_WORKER", 1)
+    parts = _spy_parts(monkeypatch)
+    files = {}
+    for workers in (1, 3, 28):
+        score_run(run, encoder=fake_spec(), workers=workers)
+        files[workers] = _score_files(run)
+    assert parts == [1, 3, 28]
+    assert files[3] == files[1] and files[28] == files[1]
+
+
+def test_the_cells_scored_by_workers_equal_those_of_one_loop(small_run, monkeypatch):
+    """Everything score_cells returns, the sanity checks' inputs too (which rarely change a score file)."""
+    from vlmproprio.evaluation import embed_captions, load_run_inputs, score_cells
+
+    run, _ = small_run
+    monkeypatch.setattr("vlmproprio.evaluation.cells.MIN_CELLS_PER_WORKER", 1)
+    inputs = load_run_inputs(run, None, True)
+    captions = embed_captions(inputs, fake_spec(), None, None)
+    one = score_cells(inputs, captions, THRESHOLDS, 0.65)
+    assert one.outputs["synthetic"].frames_missing == 3  # the planted gaps: the comparison below can see them
+    for workers in (2, 5, 28):
+        assert score_cells(inputs, captions, THRESHOLDS, 0.65, workers) == one, workers
+
+
+def test_the_shipped_fixtures_score_the_same_with_two_workers(tmp_path, monkeypatch):
+    """Real captions of two models and both tasks, at the default chunk size."""
+    from vlmproprio.cli import main
+
+    monkeypatch.setenv("VLMPROPRIO_CACHE", str(tmp_path / "cache"))
+    run = tmp_path / "run"
+    episodes = "door_00,door_05,bin0_00,bin1_01,bin2_02,bin3_00"
+    for model in ("reference", "reference-state"):
+        args = ["run", "--model", model, "--mode", "replay", "--episodes", episodes, "--conditions", "all"]
+        assert main([*args, "--out", str(run), "--no-progress"]) == 0
+    parts = _spy_parts(monkeypatch)
+    files = {}
+    for workers in (1, 2):
+        score_run(run, workers=workers)
+        files[workers] = _score_files(run)
+    assert parts == [1, 2]  # 108 transcripts: two chunks of 54
+    assert files[2] == files[1]

@@ -375,6 +375,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def cmd_score(args: argparse.Namespace) -> int:
     from vlmproprio.embeddings import DEFAULT_BATCH_SIZE, DEFAULT_THREADS, encoder_spec
     from vlmproprio.evaluation import score_run
+    from vlmproprio.parallel import parse_workers
 
     check_range("--threshold", args.threshold, 0.0, 1.0)
     check_range("--encoder-batch-size", args.encoder_batch_size, 1)
@@ -397,6 +398,7 @@ def cmd_score(args: argparse.Namespace) -> int:
         threshold=args.threshold,
         progress=not args.no_progress,
         claims=args.claims,
+        workers=None if args.workers is None else parse_workers(args.workers, "--workers"),
     )
     tables = _score_with_judge(args, score) if args.judge else score_run(args.run_dir, **score)
     csv_path = write_frames_csv(args.run_dir, tables)
@@ -824,6 +826,12 @@ def _add_score(sub) -> None:
         default=None,
         metavar="FILE",
         help="pre-registered primary hypotheses (default: the packaged claims.yml; format in docs/metrics.md)",
+    )
+    p.add_argument(
+        "--workers",
+        metavar="N",
+        help="processes for scoring a large run (default: $VLMPROPRIO_WORKERS, else the usable cores, at most 4); "
+        "the scores are the same with any number",
     )
 
 

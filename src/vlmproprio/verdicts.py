@@ -24,7 +24,7 @@ import hashlib
 import math
 import re
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 from vlmproprio.errors import VlmproprioError
@@ -209,6 +209,17 @@ class ModelOutputs:
     final_hits: list[int] = field(default_factory=list)  # lexicon hits of each final caption
     # per cell: (number of frames, segmentation points at the reported threshold)
     cells: list[tuple[int, list[int]]] = field(default_factory=list)
+
+    def extend(self, later: ModelOutputs) -> None:
+        """Add what ``later`` read from the cells after these (lists in order, counts summed)."""
+        for f in fields(self):
+            mine, theirs = getattr(self, f.name), getattr(later, f.name)
+            if isinstance(mine, list):
+                mine += theirs
+            elif type(mine) is int:
+                setattr(self, f.name, mine + theirs)
+            else:
+                raise TypeError(f"ModelOutputs.{f.name}: no rule to add a {type(mine).__name__}")
 
 
 def non_word_share(texts: Iterable[str]) -> tuple[float, int]:

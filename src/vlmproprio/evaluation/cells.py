@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import NamedTuple
 
 import numpy as np
@@ -13,6 +13,7 @@ import numpy as np
 from vlmproprio.episodes import Episode
 from vlmproprio.evaluation.captions import Cell, EmbeddedCaptions
 from vlmproprio.evaluation.inputs import RunInputs
+from vlmproprio.parallel import map_chunks
 from vlmproprio.scoring import (
     ITEMS,
     CaptionScore,
@@ -216,13 +217,16 @@ def _trace(trace: np.ndarray, statuses: list[str], ep: Episode, threshold: float
     }
 
 
-def score_cells(
-    inputs: RunInputs, captions: EmbeddedCaptions, thresholds: Sequence[float], threshold: float
+def _score_transcripts(
+    transcripts: Sequence[Transcript],
+    inputs: RunInputs,
+    captions: EmbeddedCaptions,
+    thresholds: Sequence[float],
+    threshold: float,
 ) -> CellScores:
-    """Score every transcript of the run (the rubric, the trace, the sweep and the fixed threshold)."""
     out = CellScores()
     shared = _Shared()
-    for t in inputs.transcripts:
+    for t in transcripts:
         ep = inputs.episodes[t.episode_id]
         cell = (t.model, t.episode_id, t.condition)
         key = cell_key(*cell)
@@ -244,3 +248,43 @@ def score_cells(
         out.audit[key] = _audit(t, exp, c)
         out.traces[key] = _trace(trace, statuses, ep, threshold)
     return out
+
+
+def _merge(parts: Sequence[CellScores], episodes: dict[str, Episode]) -> CellScores:
+    """The parts of consecutive transcripts as one CellScores, as a single loop over all of them builds it."""
+    out = CellScores()
+    for part in parts:
+        for f in fields(CellScores):
+            mine, theirs = getattr(out, f.name), getattr(part, f.name)
+            if f.name == "finals":  # a worker's came back with copies of the episodes: this process's own again
+                mine += [final._replace(episode=episodes[final.episode.episode_id]) for final in theirs]
+            elif f.name == "outputs":
+                for model, o in theirs.items():
+                    mine.setdefault(model, ModelOutputs()).extend(o)
+            elif isinstance(mine, list):
+                mine += theirs
+            elif isinstance(mine, dict):  # by cell (one per transcript), or lexicons by task: the first one kept
+                for k, v in theirs.items():
+                    mine.setdefault(k, v)
+            else:
+                raise TypeError(f"CellScores.{f.name}: no rule to merge a {type(mine).__name__}")
+    return out
+
+
+# below this many transcripts per worker a forked worker costs more than it saves (one cell: ~4 ms)
+MIN_CELLS_PER_WORKER = 24
+
+
+def score_cells(
+    inputs: RunInputs, captions: EmbeddedCaptions, thresholds: Sequence[float], threshold: float, workers: int = 1
+) -> CellScores:
+    """Score every transcript of the run (the rubric, the trace, the sweep and the fixed threshold); with
+    ``workers`` > 1, consecutive runs of transcripts in forked processes (vlmproprio.parallel), the same result."""
+    parts = map_chunks(
+        lambda chunk: _score_transcripts(chunk, inputs, captions, thresholds, threshold),
+        inputs.transcripts,
+        workers,
+        min_chunk=MIN_CELLS_PER_WORKER,
+        what="transcripts",
+    )
+    return parts[0] if len(parts) == 1 else _merge(parts, inputs.episodes)

@@ -17,6 +17,7 @@ from vlmproprio.evaluation.judge import judge_table
 from vlmproprio.evaluation.meta import score_meta
 from vlmproprio.evaluation.statistics import paired_statistics
 from vlmproprio.evaluation.tables import ScoreTables, aggregate_tables
+from vlmproprio.parallel import resolve_workers
 from vlmproprio.segmentation import DEFAULT_THRESHOLD, THRESHOLDS
 from vlmproprio.stats import DEFAULT_N_BOOT, DEFAULT_N_PERM, DEFAULT_SEED
 from vlmproprio.verdicts import load_claims
@@ -99,6 +100,7 @@ def score_run(
     sidecars: Sequence[str | Path] | None = None,
     progress: bool = False,
     claims: str | Path | None = None,
+    workers: int | None = None,
 ) -> ScoreTables:
     """Score every transcript of a run and (by default) write RUN_DIR/scores/.
 
@@ -111,7 +113,10 @@ def score_run(
     ``<fixtures>/responses/<model>.embeddings.npz`` of the run's models; ``()``: none), so a replayed
     cassette is scored without loading the encoder. ``progress`` shows a bar over the stages (load, embed,
     score, statistics, write). ``claims`` is the file of pre-registered primary hypotheses (default: the
-    packaged vlmproprio/claims.yml); their verdicts and the sanity warnings go to scores/verdicts.json."""
+    packaged vlmproprio/claims.yml); their verdicts and the sanity warnings go to scores/verdicts.json.
+    ``workers``: processes for scoring the cells of a large run (default: ``$VLMPROPRIO_WORKERS``,
+    else the usable cores, at most 4; see vlmproprio.parallel); the scores are the same with any number."""
+    workers = resolve_workers(workers)
     stages = _Stages(progress)
     claim_set = load_claims(claims)
     settings = ScoreSettings(threshold, thresholds, comparisons, n_boot, n_perm, seed)
@@ -119,7 +124,7 @@ def score_run(
     stages.done("load", "embedding captions")
     captions = embed_captions(inputs, encoder, embedding_cache, sidecars)
     stages.done("embed", "rubric and segmentation")
-    cells = score_cells(inputs, captions, settings.thresholds, settings.threshold)
+    cells = score_cells(inputs, captions, settings.thresholds, settings.threshold, workers)
     stages.lap("score")
     chance_dir = Path(chance_cache) if chance_cache is not None else captions.cache_dir.parent / "chance"
     baselines = add_segmentation_baselines(inputs, cells, settings.thresholds, chance_dir)

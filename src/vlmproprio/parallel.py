@@ -1,0 +1,185 @@
+"""Pure work split over forked processes: the same results, in the same order, as one loop over the items.
+
+Scoring a whole run is CPU-bound Python (the rubric, segmentation sweeps, bootstrap and permutation tests) and
+every cell is independent of the others. ``map_chunks`` cuts a sequence into contiguous chunks, computes the
+first in this process and each other in a child forked from it, and returns the chunk results in order; the
+children read the inputs from the memory they inherit (nothing is pickled on the way in) and send back only
+their results. Because a chunk's result comes from the same function on the same items, and chunks are put
+back in order, the output is the one a single loop gives, bit for bit: no float is summed across chunks here.
+
+Forking is only used where it is safe and pays: on platforms with ``fork``, with more than one worker
+(``--workers``/``$VLMPROPRIO_WORKERS``, default: the cores this process may use, at most 4) and enough items
+per worker that a child is worth its start. A child that fails or dies is an error in the parent that names
+the chunk, never a silently missing part.
+"""
+
+from __future__ import annotations
+
+import gc
+import multiprocessing
+import os
+import traceback
+from collections.abc import Callable, Sequence
+from typing import TypeVar
+
+from vlmproprio.errors import UsageError
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+WORKERS_ENV = "VLMPROPRIO_WORKERS"
+MAX_DEFAULT_WORKERS = 4  # beyond this, scoring a 22-episode run is bound by its serial stages
+
+
+def available_cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        return os.cpu_count() or 1
+
+
+def parse_workers(value: str | int, where: str) -> int:
+    """A worker count from a flag or the environment; a one-line error naming ``where`` when it is not one."""
+    try:
+        n = int(value)
+    except (TypeError, ValueError):
+        n = 0
+    if n < 1:
+        raise UsageError(f"{where} must be a whole number of worker processes, 1 or more (got {value!r})")
+    return n
+
+
+def default_workers() -> int:
+    """``$VLMPROPRIO_WORKERS`` when set, else the cores this process may use (at most MAX_DEFAULT_WORKERS),
+    shared with the other pytest-xdist workers when it is one of them."""
+    env = os.environ.get(WORKERS_ENV)
+    if env is not None and env.strip():
+        return parse_workers(env.strip(), f"${WORKERS_ENV}")
+    peers = os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")
+    share = available_cores() // int(peers) if peers.isdigit() and int(peers) > 0 else available_cores()
+    return max(1, min(share, MAX_DEFAULT_WORKERS))
+
+
+def resolve_workers(workers: int | None) -> int:
+    return default_workers() if workers is None else parse_workers(workers, "workers")
+
+
+def chunk_bounds(n: int, parts: int) -> list[tuple[int, int]]:
+    """``parts`` contiguous (start, stop) ranges covering range(n), sizes differing by at most one."""
+    parts = max(1, min(parts, n))
+    q, r = divmod(n, parts)
+    bounds, start = [], 0
+    for i in range(parts):
+        stop = start + q + (1 if i < r else 0)
+        bounds.append((start, stop))
+        start = stop
+    return bounds
+
+
+class ParallelError(RuntimeError):
+    """A forked worker failed or died; the message names the chunk and carries the worker's traceback."""
+
+
+# the job of the process being forked: a child reads it from the memory it inherits, not from a pickle
+_JOB: tuple[Callable, Sequence] | None = None
+
+
+def _child(conn, start: int, stop: int) -> None:
+    fn, items = _JOB  # type: ignore[misc]
+    try:
+        try:
+            result = fn(items[start:stop])
+        except BaseException as exc:  # every failure goes back to the parent, which raises it
+            # its traceback as text first: an error whose class cannot be rebuilt from its args still arrives
+            conn.send(("error", traceback.format_exc()))
+            try:
+                conn.send(exc)
+            except Exception:  # it cannot be pickled: the parent raises the traceback's text
+                conn.send(None)
+        else:
+            try:
+                conn.send(("ok", result))
+            except Exception as exc:  # a result that cannot be pickled
+                conn.send(("text", f"its result cannot be sent back ({type(exc).__name__}: {exc})"))
+        conn.close()
+    except OSError:  # the parent stopped listening (it failed first): nothing to report to
+        pass
+
+
+def _receive_error(receive) -> BaseException | None:
+    """The worker's exception object, None when it could not be sent or rebuilt here."""
+    try:
+        error = receive.recv()
+    except Exception:  # its class does not rebuild from its args: the traceback text stands in
+        return None
+    return error if isinstance(error, BaseException) else None
+
+
+def _can_fork() -> bool:
+    # not inside a map's worker (its children would multiply) nor in any daemonic process (a multiprocessing
+    # pool's worker), which may not have children
+    return (
+        "fork" in multiprocessing.get_all_start_methods()
+        and _JOB is None
+        and not multiprocessing.current_process().daemon
+    )
+
+
+def map_chunks(
+    fn: Callable[[Sequence[T]], R], items: Sequence[T], workers: int, *, min_chunk: int = 1, what: str = "items"
+) -> list[R]:
+    """``fn`` applied to contiguous chunks of ``items``, one chunk per worker, results in chunk order.
+
+    With one worker, one chunk (fewer than ``2 * min_chunk`` items) or no ``fork`` on this platform: ``[fn(items)]``.
+    ``fn`` must be a pure function of its chunk (and of what it closes over, read-only): each child sees the
+    parent's memory as it was when forked, and what a child changes stays in the child."""
+    global _JOB
+    parts = min(workers, len(items) // max(1, min_chunk))
+    if parts < 2 or not _can_fork():
+        return [fn(items)]
+    bounds = chunk_bounds(len(items), parts)
+    ctx = multiprocessing.get_context("fork")
+    _JOB = (fn, items)
+    children = []
+    finished = False
+    # The children read the parent's objects, which they share page by page until one is written to. The
+    # cyclic collector writes to every object it visits: frozen, it visits none of those in the children.
+    freeze = gc.get_freeze_count() == 0  # (if someone else froze objects, their freeze is left as it is)
+    if freeze:
+        gc.freeze()
+    try:
+        try:
+            for start, stop in bounds[1:]:
+                receive, send = ctx.Pipe(duplex=False)
+                proc = ctx.Process(target=_child, args=(send, start, stop), daemon=True)
+                proc.start()
+                send.close()
+                children.append((proc, receive, (start, stop)))
+        finally:
+            if freeze:
+                gc.unfreeze()
+        results = [fn(items[bounds[0][0] : bounds[0][1]])]
+        for proc, receive, (start, stop) in children:
+            where = f"the worker for {what} {start + 1}-{stop} of {len(items)}"
+            try:
+                message = receive.recv()  # before join: a large result would fill the pipe and stall the child
+            except EOFError:
+                proc.join()
+                raise ParallelError(f"{where} died (exit code {proc.exitcode})") from None
+            if message[0] == "error":  # the error a single loop would have raised, as it is (a UsageError stays one)
+                error = _receive_error(receive)
+                if error is None:
+                    raise ParallelError(f"{where} failed: {message[1]}")
+                raise error from ParallelError(f"{where}:\n{message[1]}")
+            if message[0] == "text":
+                raise ParallelError(f"{where} failed: {message[1]}")
+            results.append(message[1])
+        finished = True
+        return results
+    finally:
+        _JOB = None
+        for proc, receive, _ in children:
+            receive.close()
+            if not finished:  # this process failed first: the others' work is not wanted
+                proc.kill()
+            proc.join()
