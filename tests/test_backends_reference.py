@@ -94,3 +94,67 @@ def test_backend_is_deterministic_labelled_and_never_a_model(request_factory):
     # allowed to answer misses in replay mode, because it runs no model
     answers = Answerer(b, mode="replay").answer(reqs)
     assert [a.text for a in answers] == [a.text for a in first]
+
+
+# ---------------------------------------------------------------------------------------------- reading prompts
+
+
+def _joined(request):
+    """What prompt_states must give: the prompt's text joined as a chat template sees it, then searched."""
+    from vlmproprio.backends.reference import PROCESS_RE, process_number
+    from vlmproprio.prompts.state import parse_state_lines
+
+    text = "\n".join(m.text for m in request.messages)
+    return process_number(text), parse_state_lines(text[PROCESS_RE.search(text).end() :])
+
+
+def _cut(text: str, rng, at_line_ends: bool) -> list[str]:
+    """``text`` in pieces: cut only after line breaks, or anywhere (mid-line too, empty pieces included)."""
+    spots = [i + 1 for i, ch in enumerate(text) if ch == "\n"] if at_line_ends else list(range(len(text) + 1))
+    cuts = sorted(rng.sample(spots, min(len(spots), rng.randint(0, 8))))
+    return [text[a:b] for a, b in zip([0, *cuts], [*cuts, len(text)], strict=True)]
+
+
+def _request_of(pieces: list[str], rng):
+    from vlmproprio.chat import ChatRequest, GenerationConfig, ImagePart, Message, RequestTag, TextPart
+
+    parts = []
+    for p in pieces:
+        parts.append(TextPart(p))
+        if rng.random() < 0.3:
+            parts.append(ImagePart(b"frame"))
+    split = rng.randint(0, len(parts))  # a second message (joined to the first by a line break) or none
+    messages = tuple(Message("user", tuple(ps)) for ps in (parts[:split], parts[split:]) if ps)
+    return ChatRequest(messages=messages, config=GenerationConfig(), prompt_version="t", tag=RequestTag())
+
+
+@pytest.mark.parametrize("at_line_ends", [True, False])
+@pytest.mark.parametrize("seed", range(30))
+def test_prompt_states_reads_the_parts_as_the_joined_text(seed, at_line_ends):
+    """The worked example's states come before the process line; the parts may split lines or not."""
+    import random
+
+    from vlmproprio.backends.reference import _line_aligned_texts, prompt_states
+
+    rng = random.Random(seed)
+    example = "A worked example:\n" + state_lines() + "\n"
+    text = example + prompt(rng.choice([1, 2, 3]), state_lines(joints=rng.random() < 0.5, ee=rng.random() < 0.8))
+    request = _request_of(_cut(text, rng, at_line_ends), rng)
+    assert prompt_states(request) == _joined(request)
+    if at_line_ends:
+        assert _line_aligned_texts(request) is not None  # read part by part, not joined
+
+
+@pytest.mark.parametrize("body", ["no process line\n", "# Process 1\n", "# Process 2\n# Process 2\n"])
+def test_a_process_line_in_each_of_two_parts_is_counted_as_in_the_joined_text(body):
+    import random
+
+    from vlmproprio.backends.reference import prompt_states
+
+    request = _request_of(["# Process 1\n", body], random.Random(0))
+    found = 1 + body.count("# Process")
+    if found == 1:
+        assert prompt_states(request) == _joined(request)
+    else:
+        with pytest.raises(BackendError, match=f"exactly one '# Process N' line .*found {found};"):
+            prompt_states(request)

@@ -24,6 +24,8 @@ def _requests() -> list[ChatRequest]:
     out.append(
         ChatRequest(messages=(), config=GenerationConfig(), prompt_version="", tag=RequestTag("e", "c", "p3", -1))
     )
+    odd_mime = Message("user", (ImagePart(b"y", mime='image/"odd"\\ ✓\n'),))  # escapes in an image part's text
+    out.append(ChatRequest(messages=(odd_mime,), config=GenerationConfig(), prompt_version="", tag=RequestTag()))
     return out
 
 

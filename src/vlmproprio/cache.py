@@ -140,7 +140,10 @@ _MAX_PART_TEXTS = 1 << 14
 
 def _part_json(part) -> str:
     if isinstance(part, ImagePart):
-        return f'{{"mime":{canonical_json(part.mime)},"sha256":{canonical_json(part.sha256)},"type":"image"}}'
+        mime, digest = part.mime, part.sha256
+        if type(mime) is str and type(digest) is str:  # (encode_basestring is json.dumps of a str, as below)
+            return '{"mime":' + encode_basestring(mime) + ',"sha256":' + encode_basestring(digest) + ',"type":"image"}'
+        return canonical_json({"type": "image", "sha256": digest, "mime": mime})
     text = part.text
     if type(text) is not str:
         return canonical_json({"type": "text", "text": text})

@@ -30,7 +30,7 @@ from dataclasses import dataclass
 from functools import lru_cache
 
 from vlmproprio.backends.base import Backend, BackendError
-from vlmproprio.chat import Answer, AnswerMeta, ChatRequest
+from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, TextPart
 from vlmproprio.primitives import direction_words, gripper_word
 from vlmproprio.prompts.state import ParsedState, parse_state_lines
 
@@ -207,23 +207,59 @@ def instruction(seq: Sequence[ParsedState]) -> str:
     return text[0].upper() + text[1:] + "."
 
 
+def _process_error(found: int) -> BackendError:
+    return BackendError(
+        f"reference captioner: the prompt must hold exactly one '# Process N' line (N = 1, 2 or 3), "
+        f"found {found}; it only answers prompts built by vlmproprio.prompts"
+    )
+
+
 def process_number(text: str) -> int:
     found = PROCESS_RE.findall(text)
     if len(found) != 1:
-        raise BackendError(
-            f"reference captioner: the prompt must hold exactly one '# Process N' line (N = 1, 2 or 3), "
-            f"found {len(found)}; it only answers prompts built by vlmproprio.prompts"
-        )
+        raise _process_error(len(found))
     return int(found[0])
+
+
+@lru_cache(maxsize=4096)  # every prompt starts with one of a few preambles: each is searched once
+def _process_lines(text: str) -> tuple[tuple[int, int], ...]:
+    """(N, end offset) of every '# Process N' line in one text part."""
+    return tuple((int(m.group(1)), m.end()) for m in PROCESS_RE.finditer(text))
+
+
+def _line_aligned_texts(request: ChatRequest) -> list[str] | None:
+    """The request's text parts in order, or None when a line of its text may run across two of them (a text
+    part other than a message's last that does not end with a line break; messages are joined by one). Cut at
+    line ends, a pattern anchored to whole lines finds in the parts exactly what it finds in the joined text."""
+    texts: list[str] = []
+    for m in request.messages:
+        parts = [p.text for p in m.parts if isinstance(p, TextPart)]
+        if any(not t.endswith("\n") for t in parts[:-1]):
+            return None
+        texts += parts
+    return texts
+
+
+def prompt_states(request: ChatRequest) -> tuple[int, list[ParsedState]]:
+    """The request's process number and the state lines after its '# Process N' line (the worked example in
+    the preamble before it has state lines of its own), read part by part without joining the prompt's text."""
+    texts = _line_aligned_texts(request)
+    if texts is None:
+        text = "\n".join(m.text for m in request.messages)
+        return process_number(text), parse_state_lines(text[PROCESS_RE.search(text).end() :])
+    found = [(i, n, end) for i, t in enumerate(texts) for n, end in _process_lines(t)]
+    if len(found) != 1:
+        raise _process_error(len(found))
+    i, process, end = found[0]
+    states = parse_state_lines(texts[i][end:])
+    for t in texts[i + 1 :]:
+        states += parse_state_lines(t)
+    return process, states
 
 
 def reference_answer(request: ChatRequest) -> str:
     """The reference captioner's answer to one request (see the module docstring)."""
-    text = "\n".join(m.text for m in request.messages)
-    process = process_number(text)
-    # Only the states after the '# Process N' line belong to this episode: the worked example in the
-    # preamble before it has state lines of its own.
-    states = parse_state_lines(text[PROCESS_RE.search(text).end() :])
+    process, states = prompt_states(request)
     if process == 1:
         by_number = {s.number: s for s in states}
         k = max([len(request.images), *by_number.keys()])

@@ -57,9 +57,9 @@ from functools import lru_cache
 
 import numpy as np
 
-from vlmproprio.backends.reference import PROCESS_RE, ReferenceBackend, process_number, reference_answer
+from vlmproprio.backends.reference import ReferenceBackend, prompt_states, reference_answer
 from vlmproprio.chat import ChatRequest, ImagePart
-from vlmproprio.prompts.state import ParsedState, parse_state_lines
+from vlmproprio.prompts.state import ParsedState
 
 RULES_VERSION = "state-rules-1"
 MODEL_ID = "reference-state-rules"
@@ -401,14 +401,13 @@ def door_instruction(seq: Sequence[Sample]) -> str:
 
 def state_answer(request: ChatRequest) -> str:
     """The state-aware captioner's answer to one request (see the module docstring)."""
-    text = "\n".join(m.text for m in request.messages)
-    process = process_number(text)
+    # only the states after the '# Process N' line belong to this episode (the worked example has its own)
+    process, states = prompt_states(request)
     scene_name = scene_of_image(request.images[0]) if request.images else None
     if scene_name is None:  # no picture of a known scene: it does not know the task
         return reference_answer(request)
     scene = SCENES[scene_name]
-    # only the states after the '# Process N' line belong to this episode (the worked example has its own)
-    seq = samples(parse_state_lines(text[PROCESS_RE.search(text).end() :]), scene)
+    seq = samples(states, scene)
     if process == 1:
         k = max([len(request.images), *(s.number for s in seq)])
         return "\n".join(f"Frame {n}: {c}" for n, c in enumerate(frame_captions(seq, scene, k), start=1))
