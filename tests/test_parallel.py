@@ -12,8 +12,10 @@ from vlmproprio.parallel import (
     WORKERS_ENV,
     ParallelError,
     chunk_bounds,
+    deal_groups,
     default_workers,
     map_chunks,
+    map_groups,
     parse_workers,
 )
 
@@ -29,6 +31,22 @@ def test_chunk_bounds_cover_the_items_in_order_evenly(n, parts):
     assert len(bounds) == max(1, min(parts, n)) and max(sizes) - min(sizes) <= 1
 
 
+@pytest.mark.parametrize("parts", [1, 2, 3, 5])
+@pytest.mark.parametrize("seed", range(5))
+def test_deal_groups_keeps_groups_whole_and_the_chunks_about_even(parts, seed):
+    import random
+
+    rng = random.Random(seed)
+    keys = [rng.choice("abcdefgh") for _ in range(rng.randint(1, 60))]
+    chunks = deal_groups(keys, parts)
+    assert sorted(i for c in chunks for i in c) == list(range(len(keys)))
+    assert all(c == sorted(c) for c in chunks) and len(chunks) <= parts
+    owner = {keys[i]: n for n, c in enumerate(chunks) for i in c}
+    assert all(owner[keys[i]] == n for n, c in enumerate(chunks) for i in c)  # a group in one chunk
+    biggest = max(keys.count(k) for k in set(keys))
+    assert max(map(len, chunks)) - min(map(len, chunks)) <= biggest
+
+
 def _squares_with_pid(chunk):
     return [(x * x, os.getpid()) for x in chunk]
 
@@ -42,6 +60,25 @@ def test_the_chunks_come_back_in_order_from_that_many_processes(n, workers, min_
     assert all(len(p) == 1 for p in pids)  # each chunk in one process
     assert len(set().union(*pids)) == processes == len(parts)
     assert pids[0] == {os.getpid()}  # the first chunk in this process, the others in children
+
+
+def _per_item(chunk):
+    return [(x, x * x, os.getpid()) for x in chunk]
+
+
+def test_map_groups_gives_one_result_per_item_in_order_each_group_in_one_process():
+    items = [7, 1, 7, 3, 1, 9, 3, 7, 2, 2, 9, 4] * 3
+    out = map_groups(_per_item, items, 3, group=lambda x: x % 5)
+    assert [(x, sq) for x, sq, _ in out] == [(x, x * x) for x in items]
+    pid_of = {}
+    for x, _, pid in out:
+        assert pid_of.setdefault(x % 5, pid) == pid
+    assert len(set(pid_of.values())) == 3
+
+
+def test_map_groups_refuses_a_chunk_with_the_wrong_number_of_results():
+    with pytest.raises(ParallelError, match="3 results for 4 items"):
+        map_groups(lambda chunk: list(chunk)[:3] if chunk[0] else list(chunk), [0, 0, 0, 0, 1, 1, 1, 1], 2, group=bool)
 
 
 def test_one_worker_is_one_call_here():

@@ -364,23 +364,22 @@ def test_paired_rows_are_primary_or_exploratory_with_corrected_p(tables, small_r
 
 
 def _spy_parts(monkeypatch) -> list[int]:
-    """How many chunks each score_cells call of this test was cut into."""
-    import vlmproprio.evaluation.cells as cells
+    """Into how many processes' chunks each parallel map of this test was cut (none: one loop here)."""
+    import vlmproprio.parallel as parallel
 
     parts: list[int] = []
 
-    def spy(*args, **kwargs):
-        out = real(*args, **kwargs)
-        parts.append(len(out))
-        return out
+    def spy(fn, items, chunks, what):
+        parts.append(len(chunks))
+        return real(fn, items, chunks, what)
 
-    real = cells.map_chunks
-    monkeypatch.setattr(cells, "map_chunks", spy)
+    real = parallel._run
+    monkeypatch.setattr(parallel, "_run", spy)
     return parts
 
 
 def test_any_number_of_workers_gives_the_same_score_files(small_run, monkeypatch):
-    """Missing frames and scenes, one model: cut down to one transcript per worker."""
+    """Missing frames and scenes, one model: cut down to one episode per worker."""
     run, _ = small_run
     monkeypatch.setattr("vlmproprio.evaluation.cells.MIN_CELLS_PER_WORKER", 1)
     parts = _spy_parts(monkeypatch)
@@ -388,7 +387,7 @@ def test_any_number_of_workers_gives_the_same_score_files(small_run, monkeypatch
     for workers in (1, 3, 28):
         score_run(run, encoder=fake_spec(), workers=workers)
         files[workers] = _score_files(run)
-    assert parts == [1, 3, 28]
+    assert parts == [3, 7]  # 7 episodes: at most 7 chunks (an episode's cells stay together)
     assert files[3] == files[1] and files[28] == files[1]
 
 
@@ -421,5 +420,5 @@ def test_the_shipped_fixtures_score_the_same_with_two_workers(tmp_path, monkeypa
     for workers in (1, 2):
         score_run(run, workers=workers)
         files[workers] = _score_files(run)
-    assert parts == [1, 2]  # 108 transcripts: two chunks of 54
+    assert parts == [2]  # 108 transcripts of 6 episodes: two chunks
     assert files[2] == files[1]

@@ -19,7 +19,7 @@ import gc
 import multiprocessing
 import os
 import traceback
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Hashable, Sequence
 from typing import TypeVar
 
 from vlmproprio.errors import UsageError
@@ -84,11 +84,11 @@ class ParallelError(RuntimeError):
 _JOB: tuple[Callable, Sequence] | None = None
 
 
-def _child(conn, start: int, stop: int) -> None:
+def _child(conn, indices: Sequence[int]) -> None:
     fn, items = _JOB  # type: ignore[misc]
     try:
         try:
-            result = fn(items[start:stop])
+            result = fn(_pick(items, indices))
         except BaseException as exc:  # every failure goes back to the parent, which raises it
             # its traceback as text first: an error whose class cannot be rebuilt from its args still arrives
             conn.send(("error", traceback.format_exc()))
@@ -125,19 +125,21 @@ def _can_fork() -> bool:
     )
 
 
-def map_chunks(
-    fn: Callable[[Sequence[T]], R], items: Sequence[T], workers: int, *, min_chunk: int = 1, what: str = "items"
-) -> list[R]:
-    """``fn`` applied to contiguous chunks of ``items``, one chunk per worker, results in chunk order.
+def _pick(items: Sequence[T], indices: Sequence[int]) -> Sequence[T]:
+    contiguous = indices and indices[-1] - indices[0] == len(indices) - 1
+    return items[indices[0] : indices[-1] + 1] if contiguous else [items[i] for i in indices]
 
-    With one worker, one chunk (fewer than ``2 * min_chunk`` items) or no ``fork`` on this platform: ``[fn(items)]``.
-    ``fn`` must be a pure function of its chunk (and of what it closes over, read-only): each child sees the
-    parent's memory as it was when forked, and what a child changes stays in the child."""
+
+def _describe(indices: Sequence[int], total: int, what: str) -> str:
+    if indices[-1] - indices[0] == len(indices) - 1:
+        return f"the worker for {what} {indices[0] + 1}-{indices[-1] + 1} of {total}"
+    return f"the worker for {len(indices)} of {total} {what} (the first: number {indices[0] + 1})"
+
+
+def _run(fn: Callable[[Sequence[T]], R], items: Sequence[T], chunks: list[list[int]], what: str) -> list[R]:
+    """``fn`` of each chunk (a list of indices into ``items``, in order), the first here, the others in forked
+    children; the results in chunk order."""
     global _JOB
-    parts = min(workers, len(items) // max(1, min_chunk))
-    if parts < 2 or not _can_fork():
-        return [fn(items)]
-    bounds = chunk_bounds(len(items), parts)
     ctx = multiprocessing.get_context("fork")
     _JOB = (fn, items)
     children = []
@@ -149,18 +151,18 @@ def map_chunks(
         gc.freeze()
     try:
         try:
-            for start, stop in bounds[1:]:
+            for indices in chunks[1:]:
                 receive, send = ctx.Pipe(duplex=False)
-                proc = ctx.Process(target=_child, args=(send, start, stop), daemon=True)
+                proc = ctx.Process(target=_child, args=(send, indices), daemon=True)
                 proc.start()
                 send.close()
-                children.append((proc, receive, (start, stop)))
+                children.append((proc, receive, indices))
         finally:
             if freeze:
                 gc.unfreeze()
-        results = [fn(items[bounds[0][0] : bounds[0][1]])]
-        for proc, receive, (start, stop) in children:
-            where = f"the worker for {what} {start + 1}-{stop} of {len(items)}"
+        results = [fn(_pick(items, chunks[0]))]
+        for proc, receive, indices in children:
+            where = _describe(indices, len(items), what)
             try:
                 message = receive.recv()  # before join: a large result would fill the pipe and stall the child
             except EOFError:
@@ -183,3 +185,58 @@ def map_chunks(
             if not finished:  # this process failed first: the others' work is not wanted
                 proc.kill()
             proc.join()
+
+
+def map_chunks(
+    fn: Callable[[Sequence[T]], R], items: Sequence[T], workers: int, *, min_chunk: int = 1, what: str = "items"
+) -> list[R]:
+    """``fn`` applied to contiguous chunks of ``items``, one chunk per worker, results in chunk order.
+
+    With one worker, one chunk (fewer than ``2 * min_chunk`` items) or no ``fork`` on this platform: ``[fn(items)]``.
+    ``fn`` must be a pure function of its chunk (and of what it closes over, read-only): each child sees the
+    parent's memory as it was when forked, and what a child changes stays in the child."""
+    parts = min(workers, len(items) // max(1, min_chunk))
+    if parts < 2 or not _can_fork():
+        return [fn(items)]
+    return _run(fn, items, [list(range(a, b)) for a, b in chunk_bounds(len(items), parts)], what)
+
+
+def deal_groups(keys: Sequence[Hashable], parts: int) -> list[list[int]]:
+    """Indices of ``keys`` dealt into ``parts`` chunks, a whole group (equal keys) to one chunk, each group to
+    the chunk with the fewest items so far (ties: the first), groups in order of first appearance; the indices
+    of each chunk in ascending order. Alike items together keep what a worker remembers useful; dealing
+    spreads the kinds of items over the workers, which keeps them about equally busy."""
+    groups: dict[Hashable, list[int]] = {}
+    for i, k in enumerate(keys):
+        groups.setdefault(k, []).append(i)
+    chunks: list[list[int]] = [[] for _ in range(max(1, parts))]
+    for members in groups.values():
+        min(chunks, key=len).extend(members)
+    return [sorted(c) for c in chunks if c]
+
+
+def map_groups(
+    fn: Callable[[Sequence[T]], Sequence[R]],
+    items: Sequence[T],
+    workers: int,
+    group: Callable[[T], Hashable],
+    *,
+    min_chunk: int = 1,
+    what: str = "items",
+) -> list[R]:
+    """One result per item, in the items' order, from ``fn`` applied to chunks of whole groups of items
+    (``deal_groups`` of ``group(item)``); ``fn`` returns one result per item of its chunk, in order. The same
+    list as ``fn(items)`` for a pure ``fn`` (see ``map_chunks``)."""
+    parts = min(workers, len(items) // max(1, min_chunk))
+    if parts < 2 or not _can_fork():
+        return list(fn(items))
+    chunks = deal_groups([group(x) for x in items], parts)
+    if len(chunks) < 2:
+        return list(fn(items))
+    out: list = [None] * len(items)
+    for indices, results in zip(chunks, _run(fn, items, chunks, what), strict=True):
+        if len(results) != len(indices):
+            raise ParallelError(f"{what}: {len(results)} results for {len(indices)} items")
+        for i, r in zip(indices, results, strict=True):
+            out[i] = r
+    return out

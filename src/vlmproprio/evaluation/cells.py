@@ -13,7 +13,7 @@ import numpy as np
 from vlmproprio.episodes import Episode
 from vlmproprio.evaluation.captions import Cell, EmbeddedCaptions
 from vlmproprio.evaluation.inputs import RunInputs
-from vlmproprio.parallel import map_chunks
+from vlmproprio.parallel import map_groups
 from vlmproprio.scoring import (
     ITEMS,
     CaptionScore,
@@ -217,20 +217,24 @@ def _trace(trace: np.ndarray, statuses: list[str], ep: Episode, threshold: float
     }
 
 
-def _score_transcripts(
+def _score_each(
     transcripts: Sequence[Transcript],
     inputs: RunInputs,
     captions: EmbeddedCaptions,
     thresholds: Sequence[float],
     threshold: float,
-) -> CellScores:
-    out = CellScores()
+) -> list[CellScores]:
+    """Each transcript's cell scores on its own (one CellScores each), with what cells share computed once."""
     shared = _Shared()
+    lexicons: dict[str, Lexicon] = {}
+    scored = []
     for t in transcripts:
+        out = CellScores()
         ep = inputs.episodes[t.episode_id]
         cell = (t.model, t.episode_id, t.condition)
         key = cell_key(*cell)
-        lex = out.lexicons.setdefault(ep.task, load_lexicon(ep.task))
+        lex = lexicons.setdefault(ep.task, load_lexicon(ep.task))
+        out.lexicons[ep.task] = lex
         exp = shared.expectation(ep, lex)
         c = _score_captions(t, ep, exp, lex, shared)
         out.finals.append(FinalCaption(key, c.final, c.final_text, ep, t.condition))
@@ -247,11 +251,12 @@ def _score_transcripts(
         _add_outputs(out.outputs.setdefault(t.model, ModelOutputs()), ep, texts, statuses, c)
         out.audit[key] = _audit(t, exp, c)
         out.traces[key] = _trace(trace, statuses, ep, threshold)
-    return out
+        scored.append(out)
+    return scored
 
 
 def _merge(parts: Sequence[CellScores], episodes: dict[str, Episode]) -> CellScores:
-    """The parts of consecutive transcripts as one CellScores, as a single loop over all of them builds it."""
+    """The scores of consecutive transcripts as one CellScores, as a single loop over all of them builds it."""
     out = CellScores()
     for part in parts:
         for f in fields(CellScores):
@@ -279,12 +284,13 @@ def score_cells(
     inputs: RunInputs, captions: EmbeddedCaptions, thresholds: Sequence[float], threshold: float, workers: int = 1
 ) -> CellScores:
     """Score every transcript of the run (the rubric, the trace, the sweep and the fixed threshold); with
-    ``workers`` > 1, consecutive runs of transcripts in forked processes (vlmproprio.parallel), the same result."""
-    parts = map_chunks(
-        lambda chunk: _score_transcripts(chunk, inputs, captions, thresholds, threshold),
+    ``workers`` > 1, the episodes dealt out to forked processes (vlmproprio.parallel), the same result."""
+    each = map_groups(
+        lambda chunk: _score_each(chunk, inputs, captions, thresholds, threshold),
         inputs.transcripts,
         workers,
+        lambda t: t.episode_id,  # an episode's cells share their expectation and many texts and traces
         min_chunk=MIN_CELLS_PER_WORKER,
         what="transcripts",
     )
-    return parts[0] if len(parts) == 1 else _merge(parts, inputs.episodes)
+    return _merge(each, inputs.episodes)
