@@ -1,16 +1,19 @@
 """Pure work split over forked processes: the same results, in the same order, as one loop over the items.
 
-Scoring a whole run is CPU-bound Python (the rubric, segmentation sweeps, bootstrap and permutation tests) and
-every cell is independent of the others. ``map_chunks`` cuts a sequence into contiguous chunks, computes the
-first in this process and each other in a child forked from it, and returns the chunk results in order; the
-children read the inputs from the memory they inherit (nothing is pickled on the way in) and send back only
-their results. Because a chunk's result comes from the same function on the same items, and chunks are put
-back in order, the output is the one a single loop gives, bit for bit: no float is summed across chunks here.
+Scoring a whole run is CPU-bound Python (the rubric, segmentation sweeps) and every cell is independent of the
+others. ``map_chunks`` cuts a sequence into contiguous chunks; ``map_groups`` deals whole groups of items (an
+episode's cells) out to the chunks and puts the per-item results back in the items' order. Either computes the
+first chunk in this process and each other in a child forked from it; the children read the inputs from the
+memory they inherit (nothing is pickled on the way in) and send back only their results, over
+multiprocessing's own pipe. Because each result comes from the same function on the same items and results
+are put back in order, the output is the one a single loop gives, bit for bit: no float is summed across
+chunks here.
 
-Forking is only used where it is safe and pays: on platforms with ``fork``, with more than one worker
-(``--workers``/``$VLMPROPRIO_WORKERS``, default: the cores this process may use, at most 4) and enough items
-per worker that a child is worth its start. A child that fails or dies is an error in the parent that names
-the chunk, never a silently missing part.
+Forking is only used where it is safe and pays: on platforms with ``fork``, outside daemonic processes and
+other maps' workers, with more than one worker (``--workers``/``$VLMPROPRIO_WORKERS``, default: the cores
+this process may use, at most 4, shared among pytest-xdist workers) and enough items per worker that a child
+is worth its start. A child that fails raises its own error here (a UsageError stays one); one that dies is a
+ParallelError naming its items, never a silently missing part.
 """
 
 from __future__ import annotations
