@@ -411,7 +411,7 @@ def test_the_shipped_fixtures_score_the_same_with_two_workers(tmp_path, monkeypa
 
     monkeypatch.setenv("VLMPROPRIO_CACHE", str(tmp_path / "cache"))
     run = tmp_path / "run"
-    episodes = "door_00,door_05,bin0_00,bin1_01,bin2_02,bin3_00"
+    episodes = "door_05,bin0_00,bin3_01"
     for model in ("reference", "reference-state"):
         args = ["run", "--model", model, "--mode", "replay", "--episodes", episodes, "--conditions", "all"]
         assert main([*args, "--out", str(run), "--no-progress"]) == 0
@@ -420,5 +420,5 @@ def test_the_shipped_fixtures_score_the_same_with_two_workers(tmp_path, monkeypa
     for workers in (1, 2):
         score_run(run, workers=workers)
         files[workers] = _score_files(run)
-    assert parts == [2]  # 108 transcripts of 6 episodes: two chunks
+    assert parts == [2]  # 54 transcripts of 3 episodes: two chunks
     assert files[2] == files[1]

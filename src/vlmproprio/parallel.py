@@ -107,6 +107,9 @@ def _child(conn, indices: Sequence[int]) -> None:
         conn.close()
     except OSError:  # the parent stopped listening (it failed first): nothing to report to
         pass
+    # Leave now, without multiprocessing's exit path: it flushes stdout and stderr, whose locks another thread
+    # of the parent (a progress bar's monitor, say) may have held when this process was forked.
+    os._exit(0)
 
 
 def _receive_error(receive) -> BaseException | None:
