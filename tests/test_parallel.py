@@ -1,4 +1,4 @@
-"""vlmproprio.parallel: chunks computed in forked processes come back whole, in order, errors as themselves."""
+"""vlmproprio.parallel: items computed in forked processes come back whole, in order, errors as themselves."""
 
 from __future__ import annotations
 
@@ -11,24 +11,13 @@ from vlmproprio.errors import UsageError
 from vlmproprio.parallel import (
     WORKERS_ENV,
     ParallelError,
-    chunk_bounds,
     deal_groups,
     default_workers,
-    map_chunks,
     map_groups,
     parse_workers,
 )
 
-pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="no fork on Windows: map_chunks runs one loop there")
-
-
-@pytest.mark.parametrize("n", [0, 1, 2, 7, 24, 100])
-@pytest.mark.parametrize("parts", [1, 2, 3, 8])
-def test_chunk_bounds_cover_the_items_in_order_evenly(n, parts):
-    bounds = chunk_bounds(n, parts)
-    assert [i for a, b in bounds for i in range(a, b)] == list(range(n))
-    sizes = [b - a for a, b in bounds]
-    assert len(bounds) == max(1, min(parts, n)) and max(sizes) - min(sizes) <= 1
+pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="no fork on Windows: map_groups runs one loop there")
 
 
 @pytest.mark.parametrize("parts", [1, 2, 3, 5])
@@ -47,23 +36,24 @@ def test_deal_groups_keeps_groups_whole_and_the_chunks_about_even(parts, seed):
     assert max(map(len, chunks)) - min(map(len, chunks)) <= biggest
 
 
-def _squares_with_pid(chunk):
-    return [(x * x, os.getpid()) for x in chunk]
-
-
-@pytest.mark.parametrize(("n", "workers", "min_chunk", "processes"), [(50, 3, 1, 3), (50, 3, 20, 2), (50, 3, 26, 1)])
-def test_the_chunks_come_back_in_order_from_that_many_processes(n, workers, min_chunk, processes):
-    parts = map_chunks(_squares_with_pid, list(range(n)), workers, min_chunk=min_chunk)
-    flat = [x for part in parts for x in part]
-    assert [sq for sq, _ in flat] == [i * i for i in range(n)]
-    pids = [{pid for _, pid in part} for part in parts]
-    assert all(len(p) == 1 for p in pids)  # each chunk in one process
-    assert len(set().union(*pids)) == processes == len(parts)
-    assert pids[0] == {os.getpid()}  # the first chunk in this process, the others in children
-
-
 def _per_item(chunk):
     return [(x, x * x, os.getpid()) for x in chunk]
+
+
+def _halves(x: int) -> bool:
+    """Two groups of range(10): items 1-5 and 6-10, one chunk each."""
+    return x >= 5
+
+
+@pytest.mark.parametrize(("workers", "min_chunk", "processes"), [(3, 1, 3), (3, 20, 2), (3, 26, 1), (1, 1, 1)])
+def test_the_items_come_back_in_order_from_that_many_processes(workers, min_chunk, processes):
+    out = map_groups(_per_item, list(range(50)), workers, group=lambda x: x // 5, min_chunk=min_chunk)
+    assert [(x, sq) for x, sq, _ in out] == [(i, i * i) for i in range(50)]
+    pid_of: dict[int, int] = {}
+    for x, _, pid in out:
+        assert pid_of.setdefault(x // 5, pid) == pid  # a group in one process
+    assert len(set(pid_of.values())) == processes
+    assert pid_of[0] == os.getpid()  # the first chunk in this process, the others in children
 
 
 def test_map_groups_gives_one_result_per_item_in_order_each_group_in_one_process():
@@ -83,7 +73,9 @@ def test_map_groups_refuses_a_chunk_with_the_wrong_number_of_results():
 
 def test_one_worker_is_one_call_here():
     calls = []
-    assert map_chunks(lambda chunk: calls.append(list(chunk)) or len(chunk), range(10), 1) == [10]
+    assert map_groups(lambda chunk: calls.append(list(chunk)) or list(chunk), range(10), 1, group=_halves) == list(
+        range(10)
+    )
     assert calls == [list(range(10))]
 
 
@@ -95,7 +87,7 @@ def test_a_workers_error_is_raised_as_itself_with_the_chunk_named():
         return list(chunk)
 
     with pytest.raises(UsageError, match=r"^item 7 is bad$") as info:
-        map_chunks(fail_on_7, list(range(10)), 2)
+        map_groups(fail_on_7, list(range(10)), 2, group=_halves)
     assert isinstance(info.value.__cause__, ParallelError)
     assert "items 6-10 of 10" in str(info.value.__cause__) and "fail_on_7" in str(info.value.__cause__)
 
@@ -105,7 +97,7 @@ def test_the_first_error_in_item_order_wins_as_in_one_loop():
         raise ValueError(f"chunk starting at {chunk[0]}")
 
     with pytest.raises(ValueError, match="chunk starting at 0"):
-        map_chunks(fail_everywhere, list(range(12)), 3)
+        map_groups(fail_everywhere, list(range(12)), 3, group=lambda x: x // 4)
 
 
 def test_a_worker_that_dies_is_an_error_not_a_missing_part():
@@ -115,12 +107,14 @@ def test_a_worker_that_dies_is_an_error_not_a_missing_part():
         return list(chunk)
 
     with pytest.raises(ParallelError, match=r"items 6-10 of 10 died \(exit code 3\)"):
-        map_chunks(die_in_child, list(range(10)), 2)
+        map_groups(die_in_child, list(range(10)), 2, group=_halves)
+    with pytest.raises(ParallelError, match=r"the worker for 5 of 10 items \(the first: number 2\) died"):
+        map_groups(die_in_child, list(range(10)), 2, group=lambda x: x % 2)  # the odd ones: not one run of items
 
 
 def test_a_result_that_cannot_be_sent_back_is_named():
     with pytest.raises(ParallelError, match=r"items 6-10 of 10 failed: its result cannot be sent back"):
-        map_chunks(lambda chunk: lambda: chunk, list(range(10)), 2)
+        map_groups(lambda chunk: lambda: chunk, list(range(10)), 2, group=_halves)
 
 
 class _NeedsTwoArguments(Exception):
@@ -136,7 +130,7 @@ def test_an_error_that_cannot_be_rebuilt_here_comes_back_as_its_traceback():
         return list(chunk)
 
     with pytest.raises(ParallelError, match=r"(?s)items 6-10 of 10 failed: Traceback.*odd failure"):
-        map_chunks(fail, list(range(10)), 2)
+        map_groups(fail, list(range(10)), 2, group=_halves)
 
 
 def test_an_error_that_cannot_be_pickled_comes_back_as_its_traceback():
@@ -148,7 +142,7 @@ def test_an_error_that_cannot_be_pickled_comes_back_as_its_traceback():
         return list(chunk)
 
     with pytest.raises(ParallelError, match=r"(?s)items 6-10 of 10 failed: Traceback.*unpicklable failure"):
-        map_chunks(fail, list(range(10)), 2)
+        map_groups(fail, list(range(10)), 2, group=_halves)
 
 
 def test_when_this_process_fails_the_workers_are_stopped_not_awaited():
@@ -161,19 +155,20 @@ def test_when_this_process_fails_the_workers_are_stopped_not_awaited():
 
     t = time.perf_counter()
     with pytest.raises(ValueError, match="first chunk"):
-        map_chunks(slow_unless_first, list(range(10)), 2)
+        map_groups(slow_unless_first, list(range(10)), 2, group=_halves)
     assert time.perf_counter() - t < 30
 
 
 def test_a_map_inside_a_worker_runs_in_that_worker():
     def inner(chunk):
-        return {os.getpid()}
+        return [os.getpid()] * len(chunk)
 
     def outer(chunk):
-        return map_chunks(inner, list(chunk), 4)[0] | {os.getpid()}
+        pids = frozenset(map_groups(inner, list(chunk), 4, group=lambda x: x)) | {os.getpid()}
+        return [pids] * len(chunk)
 
-    parts = map_chunks(outer, list(range(8)), 2)
-    assert [len(p) for p in parts] == [1, 1]  # no grandchildren: each worker did its inner map itself
+    out = map_groups(outer, list(range(8)), 2, group=lambda x: x // 4)
+    assert len(set(out)) == 2 and all(len(p) == 1 for p in out)  # no grandchildren: each did its inner map itself
 
 
 def test_text_written_before_the_fork_comes_out_once(tmp_path, monkeypatch):
@@ -181,7 +176,7 @@ def test_text_written_before_the_fork_comes_out_once(tmp_path, monkeypatch):
         monkeypatch.setattr(sys, "stdout", out)
         out.write("before the fork|")  # still in the buffer: a child must not flush a copy of it (multiprocessing
         # empties the std streams before it forks)
-        map_chunks(_squares_with_pid, list(range(10)), 3)
+        map_groups(_per_item, list(range(10)), 3, group=lambda x: x % 3)
         monkeypatch.undo()
     assert (tmp_path / "out.txt").read_text() == "before the fork|"
 
@@ -196,7 +191,7 @@ def test_inside_a_daemonic_process_the_map_is_one_loop_there():
 
 
 def _pids_of_a_map() -> set[int]:
-    return {pid for part in map_chunks(_squares_with_pid, list(range(10)), 3) for _, pid in part}
+    return {pid for _, _, pid in map_groups(_per_item, list(range(10)), 3, group=lambda x: x % 3)}
 
 
 @pytest.mark.parametrize("value", ["0", "-1", "two", "1.5", ""])

@@ -1,13 +1,12 @@
 """Pure work split over forked processes: the same results, in the same order, as one loop over the items.
 
 Scoring a whole run is CPU-bound Python (the rubric, segmentation sweeps) and every cell is independent of the
-others. ``map_chunks`` cuts a sequence into contiguous chunks; ``map_groups`` deals whole groups of items (an
-episode's cells) out to the chunks and puts the per-item results back in the items' order. Either computes the
-first chunk in this process and each other in a child forked from it; the children read the inputs from the
-memory they inherit (nothing is pickled on the way in) and send back only their results, over
-multiprocessing's own pipe. Because each result comes from the same function on the same items and results
-are put back in order, the output is the one a single loop gives, bit for bit: no float is summed across
-chunks here.
+others. ``map_groups`` deals whole groups of items (an episode's cells) out to chunks, computes the first chunk
+in this process and each other in a child forked from it, and puts the per-item results back in the items'
+order. The children read the inputs from the memory they inherit (nothing is pickled on the way in) and send
+back only their results, over multiprocessing's own pipe. Because each result comes from the same function on
+the same items and results are put back in order, the output is the one a single loop gives, bit for bit: no
+float is summed across chunks here.
 
 Forking is only used where it is safe and pays: on platforms with ``fork``, outside daemonic processes and
 other maps' workers, with more than one worker (``--workers``/``$VLMPROPRIO_WORKERS``, default: the cores
@@ -65,18 +64,6 @@ def default_workers() -> int:
 
 def resolve_workers(workers: int | None) -> int:
     return default_workers() if workers is None else parse_workers(workers, "workers")
-
-
-def chunk_bounds(n: int, parts: int) -> list[tuple[int, int]]:
-    """``parts`` contiguous (start, stop) ranges covering range(n), sizes differing by at most one."""
-    parts = max(1, min(parts, n))
-    q, r = divmod(n, parts)
-    bounds, start = [], 0
-    for i in range(parts):
-        stop = start + q + (1 if i < r else 0)
-        bounds.append((start, stop))
-        start = stop
-    return bounds
 
 
 class ParallelError(RuntimeError):
@@ -144,7 +131,9 @@ def _describe(indices: Sequence[int], total: int, what: str) -> str:
 
 def _run(fn: Callable[[Sequence[T]], R], items: Sequence[T], chunks: list[list[int]], what: str) -> list[R]:
     """``fn`` of each chunk (a list of indices into ``items``, in order), the first here, the others in forked
-    children; the results in chunk order."""
+    children; the results in chunk order. ``fn`` must be a pure function of its chunk (and of what it closes
+    over, read-only): each child sees this process's memory as it was when forked, and what a child changes
+    stays in the child."""
     global _JOB
     ctx = multiprocessing.get_context("fork")
     _JOB = (fn, items)
@@ -193,20 +182,6 @@ def _run(fn: Callable[[Sequence[T]], R], items: Sequence[T], chunks: list[list[i
             proc.join()
 
 
-def map_chunks(
-    fn: Callable[[Sequence[T]], R], items: Sequence[T], workers: int, *, min_chunk: int = 1, what: str = "items"
-) -> list[R]:
-    """``fn`` applied to contiguous chunks of ``items``, one chunk per worker, results in chunk order.
-
-    With one worker, one chunk (fewer than ``2 * min_chunk`` items) or no ``fork`` on this platform: ``[fn(items)]``.
-    ``fn`` must be a pure function of its chunk (and of what it closes over, read-only): each child sees the
-    parent's memory as it was when forked, and what a child changes stays in the child."""
-    parts = min(workers, len(items) // max(1, min_chunk))
-    if parts < 2 or not _can_fork():
-        return [fn(items)]
-    return _run(fn, items, [list(range(a, b)) for a, b in chunk_bounds(len(items), parts)], what)
-
-
 def deal_groups(keys: Sequence[Hashable], parts: int) -> list[list[int]]:
     """Indices of ``keys`` dealt into ``parts`` chunks, a whole group (equal keys) to one chunk, each group to
     the chunk with the fewest items so far (ties: the first), groups in order of first appearance; the indices
@@ -232,7 +207,8 @@ def map_groups(
 ) -> list[R]:
     """One result per item, in the items' order, from ``fn`` applied to chunks of whole groups of items
     (``deal_groups`` of ``group(item)``); ``fn`` returns one result per item of its chunk, in order. The same
-    list as ``fn(items)`` for a pure ``fn`` (see ``map_chunks``)."""
+    list as ``fn(items)`` for a pure ``fn`` (see ``_run``). With one worker, fewer than ``2 * min_chunk`` items,
+    one group or no ``fork`` here: ``fn(items)``, in this process."""
     parts = min(workers, len(items) // max(1, min_chunk))
     if parts < 2 or not _can_fork():
         return list(fn(items))
