@@ -118,13 +118,17 @@ def _can_fork() -> bool:
     )
 
 
+def _contiguous(indices: Sequence[int]) -> bool:
+    """Whether ascending ``indices`` (never empty: deal_groups makes no empty chunk) are one run of items."""
+    return indices[-1] - indices[0] == len(indices) - 1
+
+
 def _pick(items: Sequence[T], indices: Sequence[int]) -> Sequence[T]:
-    contiguous = indices and indices[-1] - indices[0] == len(indices) - 1
-    return items[indices[0] : indices[-1] + 1] if contiguous else [items[i] for i in indices]
+    return items[indices[0] : indices[-1] + 1] if _contiguous(indices) else [items[i] for i in indices]
 
 
 def _describe(indices: Sequence[int], total: int, what: str) -> str:
-    if indices[-1] - indices[0] == len(indices) - 1:
+    if _contiguous(indices):
         return f"the worker for {what} {indices[0] + 1}-{indices[-1] + 1} of {total}"
     return f"the worker for {len(indices)} of {total} {what} (the first: number {indices[0] + 1})"
 
