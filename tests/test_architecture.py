@@ -15,7 +15,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "vlmproprio"
 
 # Stage of every module (dotted, relative to vlmproprio); a module may import its own stage or earlier ones.
 STAGES: list[tuple[str, ...]] = [
-    ("errors", "secrets", "io", "json_text", "parallel", "stores", "locations", "options", "schemas"),
+    ("errors", "secrets", "io", "json_text", "parallel", "stores", "locations", "digests", "options", "schemas"),
     ("primitives", "episodes", "chat", "models"),
     ("summary", "record"),
     ("conditions",),

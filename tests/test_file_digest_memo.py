@@ -9,12 +9,13 @@ import time
 
 import pytest
 
+import vlmproprio.digests as D
 import vlmproprio.episodes as E
 
 
 def test_a_changed_file_is_hashed_again(tmp_path, monkeypatch):
     monkeypatch.setattr(E, "_FILE_DIGESTS", {})
-    monkeypatch.setattr(E, "SETTLED_NS", -1)  # remember even a file written just now
+    monkeypatch.setattr(D, "SETTLED_NS", -1)  # remember even a file written just now
     f = tmp_path / "a.bin"
     f.write_bytes(b"x" * 1000)
     assert E._file_sha256(f) == hashlib.sha256(b"x" * 1000).hexdigest()
@@ -44,7 +45,7 @@ def test_corruption_after_a_clean_load_is_named(tmp_path, monkeypatch):
     files = {k: v for k, v in manifest.items() if k.startswith("episodes/door_00/")}
     (root / "manifest.json").write_text(json.dumps({"format_version": 1, "files": files}))
     monkeypatch.setattr(E, "_FILE_DIGESTS", {})
-    monkeypatch.setattr(E, "SETTLED_NS", -1)
+    monkeypatch.setattr(D, "SETTLED_NS", -1)
     E.load_episodes(root)
     assert E._FILE_DIGESTS  # remembered
     time.sleep(0.02)

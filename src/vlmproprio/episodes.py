@@ -30,7 +30,6 @@ import json
 import math
 import os
 import re
-import time
 import zipfile
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
@@ -39,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vlmproprio.digests import file_signature, settled
 from vlmproprio.errors import VlmproprioError
 
 # atomic_write_* and sha256_file live in vlmproprio.io; importing them from here keeps working
@@ -355,24 +355,21 @@ def read_manifest(root: Path) -> dict[str, str]:
 # sha256 of the fixture files hashed in this process, by absolute path, with the stat signature the file had
 # (see _file_sha256). A run then a score in one process, or the three loads of a benchmark, hash 50 MB once.
 _FILE_DIGESTS: dict[str, tuple[tuple[int, ...], str]] = {}
-SETTLED_NS = 2_000_000_000  # a file changed less than this before it was hashed is hashed again next time
 
 
 def _file_sha256(path: Path) -> str:
     """``sha256_file(path)``, hashed again only when the file may have changed since this process hashed it.
 
-    Any write, rename onto, truncation or metadata change of a file sets its ctime to the current time, which
-    no program can set back; device, inode, size, mtime and ctime unchanged mean the same bytes. A file whose
-    mtime or ctime is recent when it is hashed (a change within the timestamps' granularity could follow
-    unseen) is not remembered. Within one process only: nothing is trusted across processes."""
+    An unchanged signature (vlmproprio.digests.file_signature) means the same bytes; a file that changed just
+    before it was hashed is not remembered (digests.settled). Within one process only: the fixtures' bytes are
+    checked for corruption under the file system too, which no signature shows."""
     key = os.path.abspath(path)
-    st = os.stat(key)
-    sig = (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
+    sig = file_signature(os.stat(key))
     known = _FILE_DIGESTS.get(key)
     if known is not None and known[0] == sig:
         return known[1]
     digest = sha256_file(key)
-    if time.time_ns() - max(st.st_mtime_ns, st.st_ctime_ns) > SETTLED_NS:
+    if settled(sig):
         _FILE_DIGESTS[key] = (sig, digest)
     return digest
 

@@ -256,9 +256,10 @@ def _embedder(embedding_cache: str | None, fixtures: str):
         sidecar_vectors,
     )
 
-    store = EmbeddingStore(Path(embedding_cache) if embedding_cache else default_embedding_dir())
+    directory = Path(embedding_cache) if embedding_cache else default_embedding_dir()
+    store = EmbeddingStore(directory)
     atexit.register(store.close)
-    spec = encoder_spec()
+    spec = encoder_spec(memo_dir=directory)
     stored = sidecar_vectors([read_sidecar(p) for p in _fixture_sidecars(fixtures)], spec.key)
     return CachedEmbedder(spec, store, sidecar=stored)
 

@@ -4,9 +4,10 @@ Fixtures: ``--fixtures DIR``, else ``$VLMPROPRIO_FIXTURES``, else the repository
 first folder, from the current one upward, holding ``fixtures/manifest.json``), else the source checkout the
 package was installed from (an editable install). Nothing found is a one-line error saying how to point at one.
 
-Caches (model answers in the folder's ``cache.db``, sentence embeddings in ``embeddings/``, tiny test models in
-``models/``): ``--cache-dir DIR`` where a command takes it, else ``$VLMPROPRIO_CACHE``, else the user cache
-directory (``platformdirs``: ``~/.cache/vlmproprio`` on Linux). One variable and one option for all three.
+Caches (model answers in the folder's ``cache.db``, sentence embeddings and the encoder folder's digest in
+``embeddings/``, tiny test models in ``models/``): ``--cache-dir DIR`` where a command takes it, else
+``$VLMPROPRIO_CACHE``, else the user cache directory (``platformdirs``: ``~/.cache/vlmproprio`` on Linux). One
+variable and one option for all three.
 """
 
 from __future__ import annotations

@@ -60,9 +60,9 @@ def embed_captions(
         stored = load_sidecars(inputs.fixtures / "responses", {t.model for t in inputs.transcripts})
     else:
         stored = [read_sidecar(p) for p in sidecars]
-    spec = encoder if encoder is not None else resolve_encoder(stored)
     cache_dir = Path(embedding_cache) if embedding_cache is not None else default_embedding_dir()
     refuse_nesting(inputs.fixtures, {"RUN_DIR": inputs.run_dir, "--embedding-cache": cache_dir})
+    spec = encoder if encoder is not None else resolve_encoder(stored, memo_dir=cache_dir)
     aligned = align_frames(inputs)
     all_texts = sorted({x for texts, st in aligned.values() for x, s in zip(texts, st, strict=True) if s != "missing"})
     with EmbeddingStore(cache_dir) as store:
