@@ -40,3 +40,14 @@ def test_motion_between_ignores_frame_numbers_and_matches_fresh():
     R._motion.cache_clear()
     assert R.motion_between(a, b) == m
     assert m.grip == "closes" and m.rotates and m.direction
+
+
+def test_parsed_state_lines_remembered_equal_fresh_and_are_the_callers_to_change():
+    rng = np.random.default_rng(5)
+    lines = [S.format_state_line(n, rng.normal(size=8), rng.normal(size=6)) for n in range(1, 6)]
+    lines.append(S.format_state_line(6, None, rng.normal(size=6)))
+    text = "intro\n" + "\n".join(lines) + "\nFrame 7: no numbers\n"
+    first = S.parse_state_lines(text)
+    assert first == list(S._parse_state_text.__wrapped__(text)) and [s.number for s in first] == [1, 2, 3, 4, 5, 6]
+    first.append("changed by a caller")  # as prompt_states extends the list it gets
+    assert S.parse_state_lines(text) == list(S._parse_state_text.__wrapped__(text))

@@ -83,6 +83,11 @@ def _floats(s: str) -> tuple[float, ...] | None:
 
 def parse_state_lines(text: str) -> list[ParsedState]:
     """All ``Frame N: ...`` state lines in a prompt, in order of appearance."""
+    return list(_parse_state_text(text))
+
+
+@lru_cache(maxsize=_MAX_REMEMBERED)  # a replay meets each frame's state text ~12 times (stages and prompts)
+def _parse_state_text(text: str) -> tuple[ParsedState, ...]:
     out = []
     for m in _LINE_RE.finditer(text):
         rest = m.group(2)
@@ -93,4 +98,4 @@ def parse_state_lines(text: str) -> list[ParsedState]:
         if vecs["joints"] is None and vecs["ee"] is None:
             continue
         out.append(ParsedState(int(m.group(1)), vecs["joints"], vecs["ee"]))
-    return out
+    return tuple(out)
