@@ -133,6 +133,22 @@ def test_an_error_that_cannot_be_rebuilt_here_comes_back_as_its_traceback():
         map_groups(fail, list(range(10)), 2, group=_halves)
 
 
+def test_this_projects_errors_come_back_with_their_attributes():
+    from vlmproprio.cassettes import ReplayMissError
+    from vlmproprio.chat import RequestTag
+
+    tag = RequestTag("door_03", "both", "p1", 2)
+
+    def fail(chunk):
+        if chunk[0]:
+            raise ReplayMissError("no recorded answer", "k" * 64, tag)
+        return list(chunk)
+
+    with pytest.raises(ReplayMissError, match="^no recorded answer$") as info:
+        map_groups(fail, list(range(10)), 2, group=_halves)
+    assert (info.value.key, info.value.tag) == ("k" * 64, tag) and isinstance(info.value.__cause__, ParallelError)
+
+
 def test_an_error_that_cannot_be_pickled_comes_back_as_its_traceback():
     def fail(chunk):
         if chunk[0]:

@@ -69,6 +69,13 @@ class Answerer:
         self.stats = {"hits": 0, "misses": 0, "stored": 0, "corrupt": 0}
 
     # -------------------------------------------------------------------------------- public
+    @property
+    def pure(self) -> bool:
+        """Whether each answer is a function of its request alone: a replay from a backend that calls no model
+        (a cassette, a rule-based captioner), with no cache to read or fill. Such answering may be split over
+        processes (vlmproprio.runner): every part gets the answers one process would have got."""
+        return self.mode == "replay" and not self.backend.calls_model and self.cache is None
+
     def key(self, request: ChatRequest) -> str:
         return request_key(self.identity, request)
 

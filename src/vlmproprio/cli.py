@@ -252,6 +252,7 @@ def _check_run_ranges(args: argparse.Namespace) -> None:
 
 def cmd_run(args: argparse.Namespace) -> int:
     from vlmproprio.conditions import parse_conditions
+    from vlmproprio.parallel import parse_workers
     from vlmproprio.pipeline import PipelineSettings
     from vlmproprio.prompts import PromptOptions
     from vlmproprio.runner import RunPlan, run
@@ -279,6 +280,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         max_new_tokens=args.max_new_tokens,
         backend=backend_settings(args, home=cache_root),
         progress=not args.no_progress,
+        workers=None if args.workers is None else parse_workers(args.workers, "--workers"),
     )
     runs = run(plan)
     if args.mode == "record":
@@ -698,6 +700,15 @@ def _add_make_tiny_model(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
 
 
+def _add_workers(p: argparse.ArgumentParser, what: str, results: str) -> None:
+    p.add_argument(
+        "--workers",
+        metavar="N",
+        help=f"processes for {what} (default: $VLMPROPRIO_WORKERS, else the usable cores, at most 4); "
+        f"the {results} are the same with any number",
+    )
+
+
 def _add_run(sub) -> None:
     p = _command(sub, "run", cmd_run)
     _add_fixtures(p)
@@ -708,6 +719,9 @@ def _add_run(sub) -> None:
     p.add_argument("--out", type=Path, help="run directory (default: runs/latest)")
     _add_cache_dir(p)
     p.add_argument("--report", action="store_true", help="also score the run and write its report")
+    _add_workers(
+        p, "captioning with a model that is not called (the rule-based captioners, a cassette's replay)", "transcripts"
+    )
     _add_no_progress(p)
     _add_method_options(p.add_argument_group("method"))
     _add_hf_options(p.add_argument_group("local models (hf)"))
@@ -829,12 +843,7 @@ def _add_score(sub) -> None:
         metavar="FILE",
         help="pre-registered primary hypotheses (default: the packaged claims.yml; format in docs/metrics.md)",
     )
-    p.add_argument(
-        "--workers",
-        metavar="N",
-        help="processes for scoring a large run (default: $VLMPROPRIO_WORKERS, else the usable cores, at most 4); "
-        "the scores are the same with any number",
-    )
+    _add_workers(p, "scoring a large run", "scores")
 
 
 def _add_judge_options(g) -> None:

@@ -5,8 +5,21 @@ The CLI and the pytest plugin report these in one line (no traceback unless
 """
 
 
+def _rebuilt(cls: type, args: tuple, state: dict) -> Exception:
+    error = cls.__new__(cls, *args)
+    error.args = args
+    error.__dict__.update(state)
+    return error
+
+
 class VlmproprioError(Exception):
     """Bad input or an unavailable resource; the message says what, where, and what to do."""
+
+    def __reduce__(self):
+        # Sent from a forked worker (vlmproprio.parallel) as it is: class, message and attributes (a replay miss's
+        # key and tag). Exception's own pickling calls __init__(*args), which fails for subclasses whose
+        # __init__ takes more than the message; the worker's error would then arrive as traceback text only.
+        return (_rebuilt, (type(self), self.args, self.__dict__))
 
 
 class UsageError(VlmproprioError):

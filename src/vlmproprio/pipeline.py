@@ -18,7 +18,7 @@ across groups, episodes and conditions, while the progress bar still moves.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -239,6 +239,16 @@ def _answer_in_chunks(requests: list[ChatRequest], answer: Answerer, chunk: int,
     return out
 
 
+def episode_images(episodes: Sequence[Episode]) -> dict[str, list[ImagePart]]:
+    """Every frame's image, by episode id: read and pixel-checked once, shared by every condition."""
+    frames = frame_images([f for ep in episodes for f in ep.frames])
+    out, start = {}, 0
+    for ep in episodes:
+        out[ep.episode_id] = [ImagePart(data) for data in frames[start : start + len(ep.frames)]]
+        start += len(ep.frames)
+    return out
+
+
 def caption_episodes(
     episodes: Sequence[Episode],
     conditions: Sequence[Condition],
@@ -249,21 +259,20 @@ def caption_episodes(
     peers: Sequence[Episode] | None = None,
     chunk: int = DEFAULT_CHUNK,
     progress: bool = True,
+    images: Mapping[str, Sequence[ImagePart]] | None = None,
 ) -> list[Transcript]:
     """Run Processes 1-3 for every (episode, condition); one Transcript each, in episode-major order.
 
-    ``peers`` are the episodes the ``both_shuffled`` control may borrow states from (default: ``episodes``)."""
+    ``peers`` are the episodes the ``both_shuffled`` control may borrow states from (default: ``episodes``);
+    ``images``: ``episode_images`` of at least ``episodes``, when the caller has read them already."""
     from tqdm import tqdm
 
     peers = episodes if peers is None else peers
+    images = episode_images(episodes) if images is None else images
     runs: list[CellRun] = []
-    frames = frame_images([f for ep in episodes for f in ep.frames])  # read once, shared by every condition
-    start = 0
     for ep in episodes:
-        images = [ImagePart(data) for data in frames[start : start + len(ep.frames)]]
-        start += len(ep.frames)
         for cond in conditions:
-            runs.append(CellRun(ep, cond, images, frame_states(ep, cond, peers), settings))
+            runs.append(CellRun(ep, cond, images[ep.episode_id], frame_states(ep, cond, peers), settings))
     total = sum(2 * len(r.groups) + 1 for r in runs)
     with tqdm(total=total, desc=f"captioning ({model})", unit="req", disable=not progress) as bar:
         answers = iter(_answer_in_chunks([q for r in runs for q in r.p1_requests()], answer, chunk, bar))

@@ -14,14 +14,16 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import os
 import platform
 import subprocess
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from importlib import metadata
 from pathlib import Path
 from urllib.parse import urlsplit, urlunsplit
 
-from vlmproprio.answering import open_answerer
+from vlmproprio.answering import Answerer, open_answerer
 from vlmproprio.backends.settings import BackendSettings
 from vlmproprio.cache import default_cache_dir
 from vlmproprio.conditions import Condition
@@ -29,7 +31,8 @@ from vlmproprio.episodes import PIXEL_LEDGER_FILE, Episode, load_episodes, pixel
 from vlmproprio.errors import UsageError
 from vlmproprio.io import atomic_write_text
 from vlmproprio.models import ModelRef, resolve_model
-from vlmproprio.pipeline import PipelineSettings, answer_chunk, calls_per_episode, caption_episodes
+from vlmproprio.parallel import map_groups, resolve_workers
+from vlmproprio.pipeline import PipelineSettings, answer_chunk, calls_per_episode, caption_episodes, episode_images
 from vlmproprio.transcripts import Transcript, write_transcripts
 
 RUN_FILE = "run.json"
@@ -50,10 +53,15 @@ class RunPlan:
     backend: BackendSettings | None = None  # None: defaults
     max_new_tokens: int | None = None  # None: each model's registry default (512; tiny models 64)
     progress: bool = True
+    # processes that caption with a model whose answers are pure (Answerer.pure: the reference captioners, a
+    # cassette's replay); None: vlmproprio.parallel's default. The transcripts are the same with any number.
+    workers: int | None = None
 
     def __post_init__(self) -> None:
         # the one place a run's model names are parsed: an unknown or unsafe name fails before any work
         object.__setattr__(self, "models", tuple(map(resolve_model, self.models)))
+        if self.workers is not None:
+            resolve_workers(self.workers)  # a bad number fails here, whichever models run
 
     def pipeline_for(self, model: ModelRef) -> PipelineSettings:
         n = self.max_new_tokens or model.max_new_tokens
@@ -130,10 +138,22 @@ def _model_record(r: ModelRun) -> dict:
     }
 
 
+def provenance() -> dict:
+    """What code wrote a run: package versions and the git revision (read once per run: ~0.05 s each time)."""
+    return {"versions": package_versions(), "git_revision": git_revision(Path(__file__).parent)}
+
+
 def _write_run_file(
-    plan: RunPlan, episodes: list[Episode], runs: list[ModelRun], status: str, settings, earlier: list[dict]
+    plan: RunPlan,
+    episodes: list[Episode],
+    runs: list[ModelRun],
+    status: str,
+    settings,
+    earlier: list[dict],
+    written_by: dict,
 ) -> None:
-    """run.json; ``earlier``: the models a previous run put into this folder and this run does not redo."""
+    """run.json; ``earlier``: the models a previous run put into this folder and this run does not redo;
+    ``written_by``: ``provenance()``."""
     redone = {r.slug for r in runs}
     models = [m for m in earlier if m.get("slug") not in redone] + [_model_record(r) for r in runs]
     doc = {
@@ -149,10 +169,64 @@ def _write_run_file(
         "calls_per_episode_condition": {
             e.episode_id: calls_per_episode(len(e.frames), plan.pipeline.k) for e in episodes
         },
-        "versions": package_versions(),
-        "git_revision": git_revision(Path(__file__).parent),
+        **written_by,
     }
     atomic_write_text(plan.out / RUN_FILE, json.dumps(doc, indent=1) + "\n")
+
+
+MIN_EPISODES_PER_WORKER = 4  # a forked worker costs ~0.05 s; fewer episodes each are not worth one
+
+
+@dataclass
+class _Captioned:
+    """One episode's transcripts, and on the first episode of each worker's part, the answering statistics of
+    that worker (the other episodes' are None)."""
+
+    transcripts: list[Transcript]
+    stats: dict[str, int] | None
+
+
+def caption_and_write(
+    model: ModelRef, plan: RunPlan, episodes: list[Episode], peers: list[Episode], answerer: Answerer
+) -> list[Transcript]:
+    """Every (episode, condition) of ``model`` captioned and written to the run folder, in episode-major order.
+
+    With pure answering (Answerer.pure) and more than one worker, the episodes are dealt out to forked workers
+    (vlmproprio.parallel), each captioning and writing its part with the same answers one process would give;
+    the answerer's statistics are then the sums of the workers'. Images are read here, before forking, so that
+    the pixel ledger learns every frame it checked. A progress bar shows this process's part."""
+    pipeline = plan.pipeline_for(model)
+    chunk = answer_chunk(answerer.backend.max_batch_size)
+    workers = resolve_workers(plan.workers) if answerer.pure else 1
+    images = episode_images(episodes)
+    parent = os.getpid()
+    start = dict(answerer.stats)
+
+    def caption(part: Sequence[Episode]) -> list[_Captioned]:
+        before = dict(answerer.stats)
+        transcripts = caption_episodes(
+            part,
+            plan.conditions,
+            answerer.answer,
+            model.slug,
+            pipeline,
+            peers=peers,
+            chunk=chunk,
+            progress=plan.progress and os.getpid() == parent,
+            images=images,
+        )
+        write_transcripts(plan.out, transcripts)
+        stats = {k: answerer.stats[k] - before[k] for k in before}
+        by_episode: dict[str, list[Transcript]] = {}
+        for t in transcripts:
+            by_episode.setdefault(t.episode_id, []).append(t)
+        return [_Captioned(by_episode.get(e.episode_id, []), stats if i == 0 else None) for i, e in enumerate(part)]
+
+    done = map_groups(
+        caption, episodes, workers, lambda e: e.episode_id, min_chunk=MIN_EPISODES_PER_WORKER, what="episodes"
+    )
+    answerer.stats = {k: start[k] + sum(d.stats[k] for d in done if d.stats is not None) for k in start}
+    return [t for d in done for t in d.transcripts]
 
 
 def run_model(
@@ -160,17 +234,7 @@ def run_model(
 ) -> ModelRun:
     pipeline = plan.pipeline_for(model)
     with open_answerer(model, plan.mode, settings, plan.cache_dir) as answerer:
-        transcripts = caption_episodes(
-            episodes,
-            plan.conditions,
-            answerer.answer,
-            model.slug,
-            pipeline,
-            peers=peers,
-            chunk=answer_chunk(answerer.backend.max_batch_size),
-            progress=plan.progress,
-        )
-        write_transcripts(plan.out, transcripts)
+        transcripts = caption_and_write(model, plan, episodes, peers, answerer)
     cassette = str(answerer.cassette) if answerer.cassette else None
     stats = dict(answerer.stats)
     return ModelRun(model, answerer.mode, pipeline.to_dict(), dict(answerer.identity), stats, transcripts, cassette)
@@ -298,11 +362,12 @@ def run(plan: RunPlan) -> list[ModelRun]:
             f"cannot create run directory {plan.out}: {exc.strerror or exc}; choose another --out"
         ) from exc
     runs: list[ModelRun] = []
-    _write_run_file(plan, episodes, runs, "running", settings, earlier)
+    written_by = provenance()
+    _write_run_file(plan, episodes, runs, "running", settings, earlier, written_by)
     # frames verified by an earlier run with this cache folder are not decoded again (episodes.pixel_ledger)
     with pixel_ledger(cache_dir / PIXEL_LEDGER_FILE):
         for model in plan.models:
             runs.append(run_model(model, plan, episodes, peers, settings))
-            _write_run_file(plan, episodes, runs, "running", settings, earlier)
-    _write_run_file(plan, episodes, runs, "complete", settings, earlier)
+            _write_run_file(plan, episodes, runs, "running", settings, earlier, written_by)
+    _write_run_file(plan, episodes, runs, "complete", settings, earlier, written_by)
     return runs
