@@ -363,14 +363,15 @@ def test_paired_rows_are_primary_or_exploratory_with_corrected_p(tables, small_r
 # ---------------------------------------------------------------------------------------------- workers
 
 
-def _spy_parts(monkeypatch) -> list[int]:
-    """Into how many processes' chunks each parallel map of this test was cut (none: one loop here)."""
+def _spy_parts(monkeypatch) -> dict[str, list[int]]:
+    """Into how many processes' chunks each parallel map of this test was cut (none: one loop here), by what it
+    maps (transcripts: the cells; score files: their texts)."""
     import vlmproprio.parallel as parallel
 
-    parts: list[int] = []
+    parts: dict[str, list[int]] = {}
 
     def spy(fn, items, chunks, what):
-        parts.append(len(chunks))
+        parts.setdefault(what, []).append(len(chunks))
         return real(fn, items, chunks, what)
 
     real = parallel._run
@@ -387,7 +388,8 @@ def test_any_number_of_workers_gives_the_same_score_files(small_run, monkeypatch
     for workers in (1, 3, 28):
         score_run(run, encoder=fake_spec(), workers=workers)
         files[workers] = _score_files(run)
-    assert parts == [3, 7]  # 7 episodes: at most 7 chunks (an episode's cells stay together)
+    assert parts["transcripts"] == [3, 7]  # 7 episodes: at most 7 chunks (an episode's cells stay together)
+    assert parts["score files"] == [3, 3]  # 15 files, at least 4 per worker
     assert files[3] == files[1] and files[28] == files[1]
 
 
@@ -420,5 +422,5 @@ def test_the_shipped_fixtures_score_the_same_with_two_workers(tmp_path, monkeypa
     for workers in (1, 2):
         score_run(run, workers=workers)
         files[workers] = _score_files(run)
-    assert parts == [2]  # 54 transcripts of 3 episodes: two chunks
+    assert parts == {"transcripts": [2], "score files": [2]}  # 54 transcripts of 3 episodes: two chunks
     assert files[2] == files[1]

@@ -21,31 +21,55 @@ from vlmproprio.io import (
     sha256_file,
     writing,
 )
+from vlmproprio.parallel import map_groups
+
+# file name -> (table, format), in the order the files are written
+SCORE_FILES: dict[str, tuple[str, str]] = {
+    "rows.json": ("rows", "json"),
+    "rows.csv": ("rows", "csv"),
+    "aggregate.json": ("aggregate", "json"),
+    "aggregate.csv": ("aggregate", "csv"),
+    "sweep.json": ("sweep", "json"),
+    "sweep.csv": ("sweep", "csv"),
+    "sweep_aggregate.json": ("sweep_aggregate", "json"),
+    "sweep_aggregate.csv": ("sweep_aggregate", "csv"),
+    "paired.json": ("paired", "json"),
+    "paired.csv": ("paired", "csv"),
+    "audit.json": ("audit", "json"),
+    "traces.json": ("traces", "json"),
+    "meta.json": ("meta", "json"),
+    "verdicts.json": ("verdicts", "json"),
+    "timing.json": ("timing", "json"),
+    "judge.json": ("judge", "json"),  # when the run was judged
+}
+# the costliest to render first (measured on the shipped run: audit.json 4.7 MB, sweep.json 2 MB, sweep.csv
+# 0.7 MB, ...): dealt out in this order, two workers get about equal shares
+FILES_PER_WORKER = 4  # at least; a fork for one small file costs more than the file
+COSTLIEST_FIRST = ("audit.json", "sweep.json", "sweep.csv", "rows.csv", "rows.json", "traces.json")
 
 
-def write_score_tables(run_dir: str | Path, tables: ScoreTables, inputs: dict | None = None) -> list[Path]:
+def score_file_texts(tables: ScoreTables, workers: int = 1) -> dict[str, str]:
+    """The text of every score file, by name (judge.json too when the tables have a judge). With ``workers``
+    above one, the files are dealt out to forked workers (vlmproprio.parallel): the same texts, ~9 MB of JSON
+    and CSV per model written in about half the time on two cores."""
+    names = [n for n in SCORE_FILES if n != "judge.json" or tables.judge is not None]
+    order = [*COSTLIEST_FIRST, *(n for n in names if n not in COSTLIEST_FIRST)]
+
+    def render(part: Sequence[str]) -> list[str]:
+        dumps = {"json": dumps_json, "csv": dumps_csv}
+        return [dumps[SCORE_FILES[n][1]](getattr(tables, SCORE_FILES[n][0])) for n in part]
+
+    rendered = map_groups(render, order, workers, lambda name: name, min_chunk=FILES_PER_WORKER, what="score files")
+    texts = dict(zip(order, rendered, strict=True))
+    return {n: texts[n] for n in names}
+
+
+def write_score_tables(
+    run_dir: str | Path, tables: ScoreTables, inputs: dict | None = None, workers: int = 1
+) -> list[Path]:
     """Write the tables as one generation of RUN_DIR/scores/ (see ``swap_in_generation``), stamped with
-    ``inputs`` (``score_inputs``: what they were computed from)."""
-    files = {
-        "rows.json": dumps_json(tables.rows),
-        "rows.csv": dumps_csv(tables.rows),
-        "aggregate.json": dumps_json(tables.aggregate),
-        "aggregate.csv": dumps_csv(tables.aggregate),
-        "sweep.json": dumps_json(tables.sweep),
-        "sweep.csv": dumps_csv(tables.sweep),
-        "sweep_aggregate.json": dumps_json(tables.sweep_aggregate),
-        "sweep_aggregate.csv": dumps_csv(tables.sweep_aggregate),
-        "paired.json": dumps_json(tables.paired),
-        "paired.csv": dumps_csv(tables.paired),
-        "audit.json": dumps_json(tables.audit),
-        "traces.json": dumps_json(tables.traces),
-        "meta.json": dumps_json(tables.meta),
-        "verdicts.json": dumps_json(tables.verdicts),
-        "timing.json": dumps_json(tables.timing),
-    }
-    if tables.judge is not None:
-        files["judge.json"] = dumps_json(tables.judge)
-    return swap_in_generation(Path(run_dir), files, inputs or {})
+    ``inputs`` (``score_inputs``: what they were computed from); ``workers``: see ``score_file_texts``."""
+    return swap_in_generation(Path(run_dir), score_file_texts(tables, workers), inputs or {})
 
 
 # ---------------------------------------------------------------------------------------------- score generations

@@ -62,7 +62,7 @@ def _timing(seconds: dict[str, float], baselines: Baselines, captions: EmbeddedC
     }
 
 
-def _write(inputs: RunInputs, tables: ScoreTables) -> None:
+def _write(inputs: RunInputs, tables: ScoreTables, workers: int) -> None:
     """Write the tables as a new generation of RUN_DIR/scores/, stamped with the digests of their inputs."""
     meta, judged = tables.meta, tables.judge
     score_settings = {k: meta[k] for k in ("encoder", "segmentation", "stats")} | {
@@ -78,7 +78,7 @@ def _write(inputs: RunInputs, tables: ScoreTables) -> None:
         meta["lexicons"],
         inputs.transcript_documents if len(inputs.transcript_documents) == len(inputs.transcript_files) else None,
     )
-    write_score_tables(inputs.run_dir, tables, stamp)
+    write_score_tables(inputs.run_dir, tables, stamp, workers)
 
 
 def score_run(
@@ -114,7 +114,7 @@ def score_run(
     cassette is scored without loading the encoder. ``progress`` shows a bar over the stages (load, embed,
     score, statistics, write). ``claims`` is the file of pre-registered primary hypotheses (default: the
     packaged vlmproprio/claims.yml); their verdicts and the sanity warnings go to scores/verdicts.json.
-    ``workers``: processes for scoring the cells of a large run (default: ``$VLMPROPRIO_WORKERS``,
+    ``workers``: processes for scoring the cells of a large run and rendering its score files (default: ``$VLMPROPRIO_WORKERS``,
     else the usable cores, at most 4; see vlmproprio.parallel); the scores are the same with any number."""
     workers = resolve_workers(workers)
     stages = _Stages(progress)
@@ -147,7 +147,7 @@ def score_run(
         scores.judge = judge_table(judge, cells.finals)
         scores.timing["judge_s"] = stages.lap("judge")
     if write:
-        _write(inputs, scores)
+        _write(inputs, scores, workers)
     stages.close()
     scores.timing["total_s"] = time.perf_counter() - stages.start
     return scores
