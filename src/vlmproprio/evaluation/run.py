@@ -114,8 +114,9 @@ def score_run(
     cassette is scored without loading the encoder. ``progress`` shows a bar over the stages (load, embed,
     score, statistics, write). ``claims`` is the file of pre-registered primary hypotheses (default: the
     packaged vlmproprio/claims.yml); their verdicts and the sanity warnings go to scores/verdicts.json.
-    ``workers``: processes for scoring the cells of a large run and rendering its score files (default: ``$VLMPROPRIO_WORKERS``,
-    else the usable cores, at most 4; see vlmproprio.parallel); the scores are the same with any number."""
+    ``workers``: processes for scoring the cells of a large run and rendering its score files (default:
+    ``$VLMPROPRIO_WORKERS``, else the usable cores, at most 4; see vlmproprio.parallel); the scores are the same
+    with any number."""
     workers = resolve_workers(workers)
     stages = _Stages(progress)
     claim_set = load_claims(claims)
