@@ -144,7 +144,7 @@ def test_this_projects_errors_come_back_with_their_attributes():
             raise ReplayMissError("no recorded answer", "k" * 64, tag)
         return list(chunk)
 
-    with pytest.raises(ReplayMissError, match="^no recorded answer$") as info:
+    with pytest.raises(ReplayMissError, match=r"^no recorded answer$") as info:
         map_groups(fail, list(range(10)), 2, group=_halves)
     assert (info.value.key, info.value.tag) == ("k" * 64, tag) and isinstance(info.value.__cause__, ParallelError)
 
