@@ -107,3 +107,55 @@ def test_default_family_is_the_pre_registered_primary_family():
     claims = yaml.safe_load(CLAIMS_FILE.read_text())
     assert power.PowerSettings().family == len(claims["primary"])
     assert power.PowerSettings().alpha == claims["alpha"]
+
+
+# ---------------------------------------------------------------------------------------------- the report's cache
+
+SMALL = {"door": 3, "all": 5}
+
+
+def _small_settings(**kw):
+    from vlmproprio.power import PowerSettings
+
+    return PowerSettings(n_sims=20, **kw)
+
+
+def test_a_cached_analysis_is_the_analysis_bit_for_bit(tmp_path, monkeypatch):
+    import vlmproprio.power as P
+
+    fresh = P.analyse(_small_settings(), groups=SMALL)
+    first = P.analyse_cached(_small_settings(), SMALL, tmp_path / "power")
+    assert first == fresh
+    monkeypatch.setattr(P, "analyse", lambda *a, **k: pytest.fail("computed again"))
+    again = P.analyse_cached(_small_settings(), SMALL, tmp_path / "power")
+    assert again == fresh and json.dumps(again.to_dict()) == json.dumps(fresh.to_dict())
+    assert isinstance(again.shift_curves["door"][0], tuple)  # as analyse gives them
+
+
+def test_other_settings_or_episodes_are_computed_not_read(tmp_path, monkeypatch):
+    import vlmproprio.power as P
+
+    P.analyse_cached(_small_settings(), SMALL, tmp_path / "power")
+    calls = []
+    real = P.analyse
+    monkeypatch.setattr(P, "analyse", lambda *a, **k: calls.append(1) or real(*a, **k))
+    other = P.analyse_cached(_small_settings(alpha=0.01), SMALL, tmp_path / "power")
+    assert other.settings["alpha"] == 0.01
+    P.analyse_cached(_small_settings(), {"door": 4, "all": 5}, tmp_path / "power")
+    assert len(calls) == 2
+    assert P.analysis_key(_small_settings(), SMALL) != P.analysis_key(_small_settings(seed=1), SMALL)
+
+
+def test_a_damaged_or_unusable_cache_only_means_computing(tmp_path):
+    import vlmproprio.power as P
+    from vlmproprio.stores import JSON_VALUES, open_store
+
+    fresh = P.analyse(_small_settings(), groups=SMALL)
+    with open_store(tmp_path / "power", JSON_VALUES, error=RuntimeError, what="test") as store:
+        store[P.analysis_key(_small_settings(), SMALL)] = {"rate_curves": 3}
+    assert P.analyse_cached(_small_settings(), SMALL, tmp_path / "power") == fresh
+    with open_store(tmp_path / "power", JSON_VALUES, error=RuntimeError, what="test") as store:
+        assert store[P.analysis_key(_small_settings(), SMALL)] == json.loads(json.dumps(fresh.to_dict()))
+    blocker = tmp_path / "file"
+    blocker.write_text("in the way")
+    assert P.analyse_cached(_small_settings(), SMALL, blocker) == fresh

@@ -29,6 +29,9 @@ other numbers were asked for, and repeated runs give the same bits.
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import hashlib
 import itertools
 import json
 import math
@@ -154,6 +157,7 @@ def simulate_shift_power(n: int, effect_sd: float, settings: PowerSettings, key:
     return float(detected(d, settings).mean())
 
 
+@functools.lru_cache(maxsize=1 << 16)  # the closed forms below ask for each (k, j) once per number of episodes
 def sign_test_p(k: int, j: int) -> float:
     """Two-sided p of the exact sign-flip test when k differences are +-1 (j of them positive), zeros aside."""
     if k == 0:
@@ -199,6 +203,16 @@ class PowerAnalysis:
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> PowerAnalysis:
+        """The analysis ``to_dict`` gave, its curves' points as tuples again (JSON keeps them as lists)."""
+        points = lambda pts: [tuple(pt) for pt in pts]  # noqa: E731
+        return cls(
+            **{k: d[k] for k in ("settings", "groups", "mde_rate", "mde_shift_sd", "words", "correctness", "f1")},
+            rate_curves={q: {g: points(v) for g, v in by_group.items()} for q, by_group in d["rate_curves"].items()},
+            shift_curves={g: points(v) for g, v in d["shift_curves"].items()},
+        )
 
 
 def _first_reaching(points: Sequence[tuple[float, float]], target: float) -> float | None:
@@ -291,6 +305,47 @@ def analyse(
         "episodes_needed": episodes_for_rate(p, q, settings.level),
         "power": {g: exact_rate_power(n, p, q, settings.level) for g, n in groups.items()},
     }
+    return out
+
+
+# The report analyses every run it shows (~6 s of simulation for the shipped fixtures' 10/12/22 episodes), with
+# the same few settings each time: results are kept in a cache folder, keyed by everything they depend on.
+POWER_CACHE_DIR = "power"
+
+
+def analysis_key(settings: PowerSettings, groups: dict[str, int]) -> str:
+    """The cache key of ``analyse(settings, groups=groups)`` with its other arguments at their defaults: the
+    arguments, the tie tolerance, this module's code (any change to it is a new key) and numpy's version (its
+    random streams)."""
+    code = hashlib.sha256(Path(__file__).read_bytes()).hexdigest()
+    defaults = [PAPER_WORDS, DEFAULT_SD_WORDS, DEFAULT_SD_F1, DEFAULT_CORRECTNESS, TIE_RTOL, TARGET_POWER]
+    return json.dumps([code, np.__version__, asdict(settings), sorted(groups.items()), defaults])
+
+
+def analyse_cached(settings: PowerSettings, groups: dict[str, int], cache_dir: Path | None) -> PowerAnalysis:
+    """``analyse(settings, groups=groups)``, read from the JSON store in ``cache_dir`` when an earlier call kept
+    it there (bit for bit: JSON keeps every float). A cache that cannot be opened, read or written only means
+    computing; it never changes a number."""
+    import sqlite3
+
+    from vlmproprio.errors import VlmproprioError
+    from vlmproprio.stores import JSON_VALUES, open_store
+
+    if cache_dir is None:
+        return analyse(settings, groups=groups)
+    try:
+        key = analysis_key(settings, groups)
+        store = open_store(cache_dir, JSON_VALUES, error=VlmproprioError, what="power-analysis cache", timeout_s=10)
+    except (OSError, VlmproprioError):
+        return analyse(settings, groups=groups)
+    with store:
+        try:
+            return PowerAnalysis.from_dict(store[key])
+        except (KeyError, TypeError, AttributeError, sqlite3.Error, VlmproprioError):  # absent or damaged
+            pass
+        out = analyse(settings, groups=groups)
+        with contextlib.suppress(OSError, sqlite3.Error, VlmproprioError):
+            store[key] = out.to_dict()
     return out
 
 

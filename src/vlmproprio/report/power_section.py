@@ -27,11 +27,12 @@ def run_groups(s: RunScores) -> dict[str, int]:
     return groups
 
 
-def run_power(s: RunScores) -> power.PowerAnalysis:
+def run_power(s: RunScores, cache_dir: Path | None = None) -> power.PowerAnalysis:
+    """The analysis for the run's groups, alpha and family; kept in ``cache_dir`` (see power.analyse_cached)."""
     claims = s.verdicts.get("claims", {})
     family = len(claims.get("primary", [])) or power.PowerSettings().family
     settings = power.PowerSettings(alpha=float(claims.get("alpha", power.PowerSettings().alpha)), family=family)
-    return power.analyse(settings, groups=run_groups(s))
+    return power.analyse_cached(settings, run_groups(s), cache_dir)
 
 
 def _fmt(v: float | None) -> str:
@@ -77,8 +78,11 @@ def power_table(a: power.PowerAnalysis) -> Table:
 
 
 def power_outputs(s: RunScores, out: Path) -> tuple[Plot, Table]:
-    """The power curves (a PNG in ``out``) and the minimal-detectable-effect table for a scored run."""
-    a = run_power(s)
+    """The power curves (a PNG in ``out``) and the minimal-detectable-effect table for a scored run; the
+    analysis is kept in ``<cache root>/power`` for the next report with the same episode structure."""
+    from vlmproprio.locations import cache_root
+
+    a = run_power(s, cache_root() / power.POWER_CACHE_DIR)
     power.plot_power_curves(a, out / POWER_PLOT)
     plot = Plot(
         "all",
