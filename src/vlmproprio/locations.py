@@ -5,7 +5,8 @@ first folder, from the current one upward, holding ``fixtures/manifest.json``), 
 package was installed from (an editable install). Nothing found is a one-line error saying how to point at one.
 
 Caches (model answers in the folder's ``cache.db``, sentence embeddings and the encoder folder's digest in
-``embeddings/``, tiny test models in ``models/``): ``--cache-dir DIR`` where a command takes it, else
+``embeddings/``, tiny test models in ``models/``, chance baselines in ``chance/``, the report's power analyses in
+``power/``): ``--cache-dir DIR`` where a command takes it, else
 ``$VLMPROPRIO_CACHE``, else the user cache directory (``platformdirs``: ``~/.cache/vlmproprio`` on Linux). One
 variable and one option for all three.
 """
