@@ -8,7 +8,7 @@ Caches (model answers in the folder's ``cache.db``, sentence embeddings and the 
 ``embeddings/``, tiny test models in ``models/``, chance baselines in ``chance/``, the report's power analyses in
 ``power/``): ``--cache-dir DIR`` where a command takes it, else
 ``$VLMPROPRIO_CACHE``, else the user cache directory (``platformdirs``: ``~/.cache/vlmproprio`` on Linux). One
-variable and one option for all three.
+variable and one option for all of them.
 """
 
 from __future__ import annotations
