@@ -110,6 +110,9 @@ def test_binomial_tail_equals_scipy():
 
 def test_non_words_and_group_edges():
     assert non_word_share(["The robot moves 0.25 m up.", "x1y2 ### ok"]) == (pytest.approx(2 / 9), 9)
+    # repeated texts (a model's captions across conditions) count every time they occur, as one pass over all
+    texts = ["x1y2 ### ok", None, "The robot moves 0.25 m up.", "x1y2 ### ok", "", "x1y2 ### ok", None]
+    assert non_word_share(texts) == (6 / 15, 15)
     # two 11-frame cells, k = 5: edges at 4 and 9 (2 of 10 positions)
     g = group_edge_excess([(11, [4, 9]), (11, [4, 9])], 5)
     assert (g["on_edges"], g["points"], g["expected"]) == (4, 4, pytest.approx(0.8))

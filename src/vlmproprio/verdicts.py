@@ -23,6 +23,7 @@ from __future__ import annotations
 import hashlib
 import math
 import re
+from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
@@ -225,13 +226,13 @@ class ModelOutputs:
 def non_word_share(texts: Iterable[str]) -> tuple[float, int]:
     """Share of whitespace tokens (punctuation stripped) that are neither a word of letters nor a number."""
     total = bad = 0
-    for t in texts:
+    for t, n in Counter(texts).items():  # a model repeats its captions across conditions: each text once
         for tok in (t or "").split():
             w = tok.strip(STRIP)
             if not w:
                 continue
-            total += 1
-            bad += not WORD_RE.match(w)
+            total += n
+            bad += n * (not WORD_RE.match(w))
     return (bad / total if total else 0.0), total
 
 
