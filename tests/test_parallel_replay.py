@@ -135,14 +135,28 @@ def test_a_miss_in_a_workers_part_is_the_error_one_process_raises(tmp_path):
                 )
             )
         errors.append((str(info.value), info.value.key))
+        # the parts that were done are not written either: the folder is as one process leaves it
+        folder = tmp_path / f"w{workers}"
+        assert [p.relative_to(folder).as_posix() for p in folder.rglob("*") if p.is_file()] == ["run.json"]
     assert errors[0] == errors[1] and gone in errors[0][0]
 
 
 @pytest.mark.parametrize("bad", [0, -1, "two"])
-def test_a_bad_worker_count_is_refused_before_any_work(tmp_path, bad):
+def test_a_bad_worker_count_is_refused_before_any_work(tmp_path, bad, monkeypatch):
     with pytest.raises(UsageError, match="workers must be a whole number"):
         RunPlan(models=("reference",), conditions=CONDITIONS, fixtures=FIXTURES, out=tmp_path / "x", workers=bad)
+    monkeypatch.setenv("VLMPROPRIO_WORKERS", str(bad))  # from the environment too, whichever models run
+    with pytest.raises(UsageError, match=r"\$VLMPROPRIO_WORKERS must be a whole number"):
+        RunPlan(models=("tiny-qwen2-vl",), conditions=CONDITIONS, fixtures=FIXTURES, out=tmp_path / "x", mode="live")
     assert not (tmp_path / "x").exists()
+
+
+def test_without_progress_no_bar_is_built(tmp_path, monkeypatch):
+    """Not even a disabled one: tqdm takes its class lock then, which a forked worker could inherit held."""
+    import tqdm
+
+    monkeypatch.setattr(tqdm, "tqdm", lambda *a, **k: pytest.fail("a progress bar was built"))
+    _run(tmp_path, "quiet", 2)
 
 
 def test_cli_run_takes_workers(tmp_path, capsys):

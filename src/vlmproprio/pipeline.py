@@ -19,6 +19,7 @@ across groups, episodes and conditions, while the progress bar still moves.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -274,7 +275,10 @@ def caption_episodes(
         for cond in conditions:
             runs.append(CellRun(ep, cond, images[ep.episode_id], frame_states(ep, cond, peers), settings))
     total = sum(2 * len(r.groups) + 1 for r in runs)
-    with tqdm(total=total, desc=f"captioning ({model})", unit="req", disable=not progress) as bar:
+    # no bar at all without progress, not a disabled one: tqdm takes its class lock even then, and a forked
+    # worker (vlmproprio.runner) could inherit that lock held by the parent's tqdm monitor thread
+    bar_or_none = tqdm(total=total, desc=f"captioning ({model})", unit="req") if progress else nullcontext()
+    with bar_or_none as bar:
         answers = iter(_answer_in_chunks([q for r in runs for q in r.p1_requests()], answer, chunk, bar))
         for r in runs:
             r.accept_p1([next(answers) for _ in r.groups])

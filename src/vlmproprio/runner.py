@@ -29,11 +29,11 @@ from vlmproprio.cache import default_cache_dir
 from vlmproprio.conditions import Condition
 from vlmproprio.episodes import PIXEL_LEDGER_FILE, Episode, load_episodes, pixel_ledger
 from vlmproprio.errors import UsageError
-from vlmproprio.io import atomic_write_text
+from vlmproprio.io import atomic_write_text, atomic_write_texts
 from vlmproprio.models import ModelRef, resolve_model
 from vlmproprio.parallel import map_groups, resolve_workers
 from vlmproprio.pipeline import PipelineSettings, answer_chunk, calls_per_episode, caption_episodes, episode_images
-from vlmproprio.transcripts import Transcript, write_transcripts
+from vlmproprio.transcripts import Transcript, transcript_files
 
 RUN_FILE = "run.json"
 RUN_VERSION = 1
@@ -60,8 +60,7 @@ class RunPlan:
     def __post_init__(self) -> None:
         # the one place a run's model names are parsed: an unknown or unsafe name fails before any work
         object.__setattr__(self, "models", tuple(map(resolve_model, self.models)))
-        if self.workers is not None:
-            resolve_workers(self.workers)  # a bad number fails here, whichever models run
+        resolve_workers(self.workers)  # a bad number (or $VLMPROPRIO_WORKERS) fails here, whichever models run
 
     def pipeline_for(self, model: ModelRef) -> PipelineSettings:
         n = self.max_new_tokens or model.max_new_tokens
@@ -179,10 +178,11 @@ MIN_EPISODES_PER_WORKER = 4  # a forked worker costs ~0.05 s; fewer episodes eac
 
 @dataclass
 class _Captioned:
-    """One episode's transcripts, and on the first episode of each worker's part, the answering statistics of
-    that worker (the other episodes' are None)."""
+    """One episode's transcripts and their files' texts, and on the first episode of each worker's part, the
+    answering statistics of that worker (the other episodes' are None)."""
 
     transcripts: list[Transcript]
+    files: dict[Path, str]
     stats: dict[str, int] | None
 
 
@@ -192,9 +192,12 @@ def caption_and_write(
     """Every (episode, condition) of ``model`` captioned and written to the run folder, in episode-major order.
 
     With pure answering (Answerer.pure) and more than one worker, the episodes are dealt out to forked workers
-    (vlmproprio.parallel), each captioning and writing its part with the same answers one process would give;
-    the answerer's statistics are then the sums of the workers'. Images are read here, before forking, so that
-    the pixel ledger learns every frame it checked. A progress bar shows this process's part."""
+    (vlmproprio.parallel), each captioning its part and rendering its transcripts' text with the same answers one
+    process would give. Everything is read and written here: the images before forking (so that the pixel
+    ledger learns every frame it checked), the transcripts once every part is done (so that a failed part leaves
+    the run folder as one process leaves it). The answerer's statistics are the sums of the workers'; a request
+    that two workers' parts both make (none does in a run of distinct episodes) is counted by each. A progress
+    bar shows this process's part."""
     pipeline = plan.pipeline_for(model)
     chunk = answer_chunk(answerer.backend.max_batch_size)
     workers = resolve_workers(plan.workers) if answerer.pure else 1
@@ -215,16 +218,23 @@ def caption_and_write(
             progress=plan.progress and os.getpid() == parent,
             images=images,
         )
-        write_transcripts(plan.out, transcripts)
         stats = {k: answerer.stats[k] - before[k] for k in before}
         by_episode: dict[str, list[Transcript]] = {}
         for t in transcripts:
             by_episode.setdefault(t.episode_id, []).append(t)
-        return [_Captioned(by_episode.get(e.episode_id, []), stats if i == 0 else None) for i, e in enumerate(part)]
+        return [
+            _Captioned(
+                by_episode.get(e.episode_id, []),
+                transcript_files(plan.out, by_episode.get(e.episode_id, [])),
+                stats if i == 0 else None,
+            )
+            for i, e in enumerate(part)
+        ]
 
     done = map_groups(
         caption, episodes, workers, lambda e: e.episode_id, min_chunk=MIN_EPISODES_PER_WORKER, what="episodes"
     )
+    atomic_write_texts({path: text for d in done for path, text in d.files.items()})
     answerer.stats = {k: start[k] + sum(d.stats[k] for d in done if d.stats is not None) for k in start}
     return [t for d in done for t in d.transcripts]
 

@@ -140,11 +140,15 @@ def write_transcript(run_dir: Path, t: Transcript) -> Path:
     return path
 
 
+def transcript_files(run_dir: Path, transcripts: Sequence[Transcript]) -> dict[Path, str]:
+    """Each transcript's file in ``run_dir`` and its text, in ``transcripts`` order."""
+    return {transcript_path(run_dir, t.model, t.episode_id, t.condition): transcript_text(t) for t in transcripts}
+
+
 def write_transcripts(run_dir: Path, transcripts: Sequence[Transcript]) -> list[Path]:
     """``write_transcript`` for each, several at a time (``io.atomic_write_texts``); the first failure, in
     ``transcripts`` order, is raised once every write has finished or failed."""
-    files = {transcript_path(run_dir, t.model, t.episode_id, t.condition): transcript_text(t) for t in transcripts}
-    return list(atomic_write_texts(files))
+    return list(atomic_write_texts(transcript_files(run_dir, transcripts)))
 
 
 def read_transcript(path: Path) -> Transcript:
