@@ -159,3 +159,14 @@ def test_a_damaged_or_unusable_cache_only_means_computing(tmp_path):
     blocker = tmp_path / "file"
     blocker.write_text("in the way")
     assert P.analyse_cached(_small_settings(), SMALL, blocker) == fresh
+
+
+def test_damaged_bytes_in_the_cache_only_mean_computing(tmp_path):
+    import sqlite3
+
+    import vlmproprio.power as P
+
+    fresh = P.analyse_cached(_small_settings(), SMALL, tmp_path / "power")
+    with sqlite3.connect(tmp_path / "power" / "cache.db") as db:
+        assert db.execute("UPDATE Cache SET value = X'DEADBEEF'").rowcount == 1  # not zlib, not JSON
+    assert P.analyse_cached(_small_settings(), SMALL, tmp_path / "power") == fresh

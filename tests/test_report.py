@@ -396,3 +396,18 @@ def test_compare_single_model_runs_with_different_names(run, two_models):
     assert _find(c, task="all", condition="both", metric="final_all_correct")["diff"] == 0.0
     with pytest.raises(ReportError, match="no model in common"):
         compare_runs(run[0], two_models[0])
+
+
+def test_power_analyses_are_kept_in_the_given_cache_and_never_in_the_fixtures(run, tmp_path, monkeypatch):
+    import vlmproprio.power as P
+
+    write_report(run[0], out=tmp_path / "r1", cache_dir=tmp_path / "cache")
+    assert (tmp_path / "cache" / P.POWER_CACHE_DIR / "cache.db").is_file()
+    monkeypatch.setattr(P, "analyse", lambda *a, **k: pytest.fail("computed again"))
+    write_report(run[0], out=tmp_path / "r2", cache_dir=tmp_path / "cache")  # read back
+    assert (tmp_path / "r1" / "index.html").read_bytes() == (tmp_path / "r2" / "index.html").read_bytes()
+    monkeypatch.undo()
+    fixtures = shutil.copytree(run[1], tmp_path / "fixtures")
+    before = sorted(fixtures.rglob("*"))
+    write_report(run[0], fixtures, out=tmp_path / "r3", cache_dir=fixtures / "cache")  # a cache inside the fixtures
+    assert sorted(fixtures.rglob("*")) == before

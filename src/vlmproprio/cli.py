@@ -168,7 +168,7 @@ def cmd_cassette_embed(args: argparse.Namespace) -> int:
     from vlmproprio.sidecars import benchmark_caption_texts, build_sidecar, run_caption_texts
 
     embedding_cache = cache_root_of(args) / "embeddings"
-    spec = encoder_spec(args.encoder, batch_size=args.encoder_batch_size, memo_dir=embedding_cache)
+    spec = encoder_spec(args.encoder, batch_size=args.encoder_batch_size)
     fixtures = fixtures_of(args)
     if args.run_dir:
         slug = resolve_model(args.model).slug
@@ -288,7 +288,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     for r in runs:
         print(f"{r.name}: {len(r.transcripts)} transcripts in {plan.out} ({r.mode}); {answer_summary(r)}")
     if args.report:
-        return _score_and_report(plan.out, fixtures, progress=not args.no_progress)
+        return _score_and_report(plan.out, fixtures, cache_root, progress=not args.no_progress)
     return 0
 
 
@@ -303,14 +303,14 @@ def answer_summary(r) -> str:
     return text + (f"; cassette {r.cassette}" if r.cassette else "")
 
 
-def _score_and_report(run_dir: Path, fixtures: Path | None, *, progress: bool = True) -> int:
+def _score_and_report(run_dir: Path, fixtures: Path | None, cache: Path, *, progress: bool = True) -> int:
     from vlmproprio.evaluation import score_run
     from vlmproprio.report import write_report
 
     with _stages("score + report", 2, progress) as bar:
-        write_frames_csv(run_dir, score_run(run_dir, fixtures=fixtures))
+        write_frames_csv(run_dir, score_run(run_dir, fixtures=fixtures, embedding_cache=cache / "embeddings"))
         bar.update()
-        index = write_report(run_dir, fixtures=fixtures)
+        index = write_report(run_dir, fixtures=fixtures, cache_dir=cache)
         bar.update()
     print(f"report: {index}")
     return 0
@@ -327,6 +327,7 @@ def cmd_report(args: argparse.Namespace) -> int:
     from vlmproprio.report import scores_present, write_report
 
     progress = not args.no_progress
+    cache = cache_root_of(args)
     with _stages("report", 2, progress) as bar:
         if not scores_present(args.run_dir):
             from vlmproprio.evaluation import score_run
@@ -334,7 +335,10 @@ def cmd_report(args: argparse.Namespace) -> int:
             if not args.run_dir.is_dir():
                 raise UsageError(f"{args.run_dir}: run directory not found")
             bar.set_description("report: scoring (no scores yet)")
-            write_frames_csv(args.run_dir, score_run(args.run_dir, fixtures=args.fixtures, progress=progress))
+            scores = score_run(
+                args.run_dir, fixtures=args.fixtures, progress=progress, embedding_cache=cache / "embeddings"
+            )
+            write_frames_csv(args.run_dir, scores)
             print(f"scored {args.run_dir} (no scores were there)")
         bar.update()
         bar.set_description("report: tables, plots, page")
@@ -344,6 +348,7 @@ def cmd_report(args: argparse.Namespace) -> int:
             out=args.out,
             examples=split_list(args.examples) or None,
             trace_conditions=split_list(args.trace_conditions) or None,
+            cache_dir=cache,
         )
         bar.update()
     print(f"report: {index}")
@@ -391,9 +396,7 @@ def cmd_score(args: argparse.Namespace) -> int:
     spec = (
         None
         if default
-        else encoder_spec(
-            args.encoder, batch_size=args.encoder_batch_size, threads=args.encoder_threads, memo_dir=embedding_cache
-        )
+        else encoder_spec(args.encoder, batch_size=args.encoder_batch_size, threads=args.encoder_threads)
     )
     score = dict(
         fixtures=args.fixtures,
@@ -880,6 +883,7 @@ def _add_report(sub) -> None:
         "conditions in the trace figures, a comma list or repeated (default: none,both, as in the paper)",
         "CONDS",
     )
+    _add_cache_dir(p)
     _add_no_progress(p)
 
 

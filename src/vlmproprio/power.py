@@ -341,7 +341,7 @@ def analyse_cached(settings: PowerSettings, groups: dict[str, int], cache_dir: P
     with store:
         try:
             return PowerAnalysis.from_dict(store[key])
-        except (KeyError, TypeError, AttributeError, sqlite3.Error, VlmproprioError):  # absent or damaged
+        except Exception:  # absent, or damaged in any way (diskcache decodes a value outside its own guard)
             pass
         out = analyse(settings, groups=groups)
         with contextlib.suppress(OSError, sqlite3.Error, VlmproprioError):

@@ -20,7 +20,7 @@ from vlmproprio.report.page import (
     write_thumbnail,
 )
 from vlmproprio.report.plots import Plot, save_figure, success_rates_figure, sweep_figure, trace_figure
-from vlmproprio.report.power_section import power_outputs
+from vlmproprio.report.power_section import power_cache, power_outputs
 from vlmproprio.report.tables import headline_table, markdown_report, report_tables, verdict_table
 from vlmproprio.transcripts import Transcript, read_transcripts
 
@@ -228,11 +228,13 @@ def write_report(
     out: str | Path | None = None,
     examples: Sequence[str] | None = None,
     trace_conditions: Sequence[str] | None = None,
+    cache_dir: str | Path | None = None,
 ) -> Path:
     """Write the report of a scored run into ``out`` (default RUN_DIR/report/); returns the HTML page's path.
 
     The run must be scored (RUN_DIR/scores/, `vlmproprio score RUN_DIR`). Frames come from the fixture folder
-    (``fixtures``, default the one named in run.json); without it the page says so and shows no frames."""
+    (``fixtures``, default the one named in run.json); without it the page says so and shows no frames.
+    ``cache_dir``: the cache root whose ``power/`` keeps power analyses (default: vlmproprio.locations)."""
     require_report_packages()
     s = load_run_scores(run_dir)
     out = Path(out) if out is not None else Path(run_dir) / REPORT_DIR
@@ -253,7 +255,7 @@ def write_report(
     plots = write_plots(s, out, transcripts, examples, trace_conditions)
     tables = report_tables(s)
     if s.rows:
-        power_plot, power_tab = power_outputs(s, out)
+        power_plot, power_tab = power_outputs(s, out, power_cache(cache_dir, root))
         plots.append(power_plot)
         tables.append(power_tab)
     atomic_write_text(out / MARKDOWN, markdown_report(s, tables, [(p.file, p.title) for p in plots]))

@@ -77,12 +77,23 @@ def power_table(a: power.PowerAnalysis) -> Table:
     )
 
 
-def power_outputs(s: RunScores, out: Path) -> tuple[Plot, Table]:
-    """The power curves (a PNG in ``out``) and the minimal-detectable-effect table for a scored run; the
-    analysis is kept in ``<cache root>/power`` for the next report with the same episode structure."""
-    from vlmproprio.locations import cache_root
+def power_cache(cache_root: str | Path | None, fixtures: str | Path | None) -> Path | None:
+    """``<cache root>/power`` (default root: vlmproprio.locations), None when it would lie in the fixture folder
+    (where a new file breaks the manifest): the analysis is then computed, not kept."""
+    from vlmproprio.locations import cache_root as default_root
 
-    a = run_power(s, cache_root() / power.POWER_CACHE_DIR)
+    folder = (Path(cache_root) if cache_root is not None else default_root()) / power.POWER_CACHE_DIR
+    if fixtures and Path(fixtures).is_dir():
+        inside = folder.resolve() == Path(fixtures).resolve() or Path(fixtures).resolve() in folder.resolve().parents
+        if inside:
+            return None
+    return folder
+
+
+def power_outputs(s: RunScores, out: Path, cache_dir: Path | None) -> tuple[Plot, Table]:
+    """The power curves (a PNG in ``out``) and the minimal-detectable-effect table for a scored run; the
+    analysis is kept in ``cache_dir`` (``power_cache``) for the next report with the same episode structure."""
+    a = run_power(s, cache_dir)
     power.plot_power_curves(a, out / POWER_PLOT)
     plot = Plot(
         "all",
