@@ -86,7 +86,9 @@ def parse_state_lines(text: str) -> list[ParsedState]:
     return list(_parse_state_text(text))
 
 
-@lru_cache(maxsize=_MAX_REMEMBERED)  # a replay meets each frame's state text ~12 times (stages and prompts)
+# a replay meets each frame's state text ~12 times (stages and prompts): ~2,000 distinct texts per model; the
+# bound keeps a long-lived process (a benchmark session) from holding every prompt section it ever read
+@lru_cache(maxsize=1 << 12)
 def _parse_state_text(text: str) -> tuple[ParsedState, ...]:
     out = []
     for m in _LINE_RE.finditer(text):
