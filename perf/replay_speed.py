@@ -8,8 +8,8 @@ fixtures/responses/<model>.embeddings.npz; without one the sentence encoder woul
 warm: a fresh process with the embeddings cached. Targets: issue 7 <= 20 s cold, <= 5 s warm; issue 17 <= 5 s
 cold, <= 2 s warm on 2 cores. Also reports which heavy libraries the process imported (none, with sidecars).
 
-Scoring uses the default number of workers (vlmproprio.parallel: the usable cores, at most 4; 2 on the CI
-machine); set VLMPROPRIO_WORKERS=1 to time one process alone.
+Replay (with answers that call no model) and scoring use the default number of workers (vlmproprio.parallel:
+the usable cores, at most 4; 2 on the CI machine); set VLMPROPRIO_WORKERS=1 to time one process alone.
 
 --split N (warm, after the runs above): the ceiling of N-core parallelism for this work. N fresh processes
 start together, each replaying and scoring every N-th episode into its own run folder; the wall time is from
