@@ -267,7 +267,8 @@ def read_run_file(run_dir: Path) -> dict | None:
     return data
 
 
-def _inside(a: Path, b: Path) -> bool:
+def is_inside(a: Path, b: Path) -> bool:
+    """Whether folder ``a`` is ``b`` or lies below it (both resolved)."""
     a, b = a.resolve(), b.resolve()
     return a == b or b in a.parents
 
@@ -279,12 +280,12 @@ def refuse_nesting(fixtures: Path, folders: dict[str, Path | None]) -> None:
     for flag, folder in folders.items():
         if folder is None:
             continue
-        if _inside(Path(folder), fixtures):
+        if is_inside(Path(folder), fixtures):
             raise UsageError(
                 f"{flag} {folder} is inside the fixture folder {fixtures}; fixtures hold frozen data only "
                 f"(its manifest would see new files): choose a {flag} outside it"
             )
-        if _inside(fixtures, Path(folder)):
+        if is_inside(fixtures, Path(folder)):
             raise UsageError(f"the fixture folder {fixtures} is inside {flag} {folder}; choose a {flag} beside it")
 
 

@@ -81,13 +81,10 @@ def power_cache(cache_root: str | Path | None, fixtures: str | Path | None) -> P
     """``<cache root>/power`` (default root: vlmproprio.locations), None when it would lie in the fixture folder
     (where a new file breaks the manifest): the analysis is then computed, not kept."""
     from vlmproprio.locations import cache_root as default_root
+    from vlmproprio.runner import is_inside
 
     folder = (Path(cache_root) if cache_root is not None else default_root()) / power.POWER_CACHE_DIR
-    if fixtures and Path(fixtures).is_dir():
-        inside = folder.resolve() == Path(fixtures).resolve() or Path(fixtures).resolve() in folder.resolve().parents
-        if inside:
-            return None
-    return folder
+    return None if fixtures and Path(fixtures).is_dir() and is_inside(folder, Path(fixtures)) else folder
 
 
 def power_outputs(s: RunScores, out: Path, cache_dir: Path | None) -> tuple[Plot, Table]:
