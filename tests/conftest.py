@@ -85,14 +85,39 @@ def torch_one_thread():
     return torch
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _tiny_models_shared_by_the_workers(tmp_path_factory):
+    """Under pytest-xdist, each worker's cache root gets its models/ folder as a link to one folder of the whole
+    session (beside the workers' own temporary folders), so a tiny checkpoint (~5 CPU s) is built once per session
+    rather than once per worker. Safe where the whole cache root was not (perf/README.md §10): a build is plain
+    files made in a temporary folder and renamed into place, and a worker that loses the race uses the winner's
+    (vlmproprio.backends.tiny.ensure_tiny_model). Nothing else in the cache root is shared."""
+    link = SESSION_CACHE / "models"
+    if os.environ.get("PYTEST_XDIST_WORKER") and not link.exists():
+        shared = tmp_path_factory.getbasetemp().parent / "tiny-models"
+        shared.mkdir(exist_ok=True)
+        link.symlink_to(shared, target_is_directory=True)
+
+
 @pytest.fixture(scope="session")
 def tiny_model(torch_one_thread):
-    """The tiny random checkpoint of a family (about 1 MB), built once per test session (per xdist worker) in the
-    session's cache root ($VLMPROPRIO_CACHE/models), where the registry's ``tiny-*`` models look for it: a test
-    that runs ``tiny-qwen2-vl`` by name and asks for this fixture finds the build instead of making its own."""
+    """The tiny random checkpoint of a family (about 1 MB), built once per test session in the session's cache
+    root ($VLMPROPRIO_CACHE/models, shared by the xdist workers), where the registry's ``tiny-*`` models look for
+    it: a test that runs ``tiny-qwen2-vl`` by name and asks for this fixture finds the build instead of making
+    its own."""
+    import fcntl
+
     from vlmproprio.backends.tiny import ensure_tiny_model
 
-    return lambda family: ensure_tiny_model(family, SESSION_CACHE)
+    def build(family: str) -> Path:
+        # the workers start their tiny-model modules at about the same time: one builds, the others wait for it
+        # (a race of builds would be safe, but each would cost the ~5 CPU s that sharing saves)
+        (SESSION_CACHE / "models").mkdir(exist_ok=True)
+        with (SESSION_CACHE / "models" / f".{family}.lock").open("w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file is closed
+            return ensure_tiny_model(family, SESSION_CACHE)
+
+    return build
 
 
 @pytest.fixture(scope="session")
