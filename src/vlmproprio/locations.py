@@ -26,7 +26,9 @@ APP_NAME = "vlmproprio"
 # Every environment variable vlmproprio reads, with what it does; the README lists the same (a test checks).
 ENVIRONMENT: dict[str, str] = {
     FIXTURES_ENV: "fixture folder when --fixtures is not given",
-    CACHE_ENV: "cache folder (answers in cache.db, embeddings/, models/, chance/, power/) when --cache-dir is not given",
+    CACHE_ENV: (
+        "cache folder (answers in cache.db, embeddings/, models/, chance/, power/) when --cache-dir is not given"
+    ),
     "OPENAI_API_KEY": "API key of the openai backend (another variable with --api-key-env)",
     "MUJOCO_GL": "headless OpenGL for recording: egl (default) or osmesa",
     "HF_HUB_OFFLINE": "set to 1 unless --allow-download: local weights only",

@@ -1,12 +1,12 @@
 """Pure work split over forked processes: the same results, in the same order, as one loop over the items.
 
-Scoring a whole run is CPU-bound Python (the rubric, segmentation sweeps), and so is replaying one with answers
-that call no model (rules, a cassette); every cell and every episode is independent of the others. ``map_groups`` deals whole groups of items (an episode's cells) out to chunks, computes the first chunk
-in this process and each other in a child forked from it, and puts the per-item results back in the items'
-order. The children read the inputs from the memory they inherit (nothing is pickled on the way in) and send
-back only their results, over multiprocessing's own pipe. Because each result comes from the same function on
-the same items and results are put back in order, the output is the one a single loop gives, bit for bit: no
-float is summed across chunks here.
+Scoring a whole run is CPU-bound Python (the rubric, segmentation sweeps), and so is replaying one with answers that
+call no model (rules, a cassette); every cell and every episode is independent of the others. ``map_groups`` deals
+whole groups of items (an episode's cells) out to chunks, computes the first chunk in this process and each other in
+a child forked from it, and puts the per-item results back in the items' order. The children read the inputs from
+the memory they inherit (nothing is pickled on the way in) and send back only their results, over multiprocessing's
+own pipe. Because each result comes from the same function on the same items and results are put back in order, the
+output is the one a single loop gives, bit for bit: no float is summed across chunks here.
 
 Forking is only used where it is safe and pays: on platforms with ``fork``, outside daemonic processes and
 other maps' workers, with more than one worker (``--workers``/``$VLMPROPRIO_WORKERS``, default: the cores
