@@ -28,10 +28,10 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     and for runs that record, run live or keep their run folder), else one worker more than there are cores.
 
     The plugin is asked first because this hook returns the first answer and this conftest's implementation is
-    called before the plugin's: answering alone, it overrode the plugin, so `pytest benchmark/ --mode record`
-    started workers that recorded the same cassette at once. About a tenth of the suite's time is spent waiting
-    (on CLI subprocesses, local servers, SIGKILLed runs), which an extra worker fills: on 2 cores, 3 workers ran
-    the README's test command in 6 min 53 s against 7 min 29 s with 2 (perf/README.md §8)."""
+    called before the plugin's: answering alone, it would override the plugin, and `pytest benchmark/ --mode
+    record` would start workers that record the same cassette at once. About a tenth of the suite's time is spent
+    waiting (on CLI subprocesses, local servers, SIGKILLed runs), which the extra worker fills (on 2 cores,
+    3 workers take about a tenth less time than 2)."""
     import os
 
     decided = pytest_plugin.pytest_xdist_auto_num_workers(config)

@@ -18,7 +18,7 @@ only be slower than this.
 
 --against DIR: the same runs of another checkout of vlmproprio (its src/ and fixtures/, e.g. a git worktree of
 an older commit), alternated with this checkout's, each with its own embedding cache: the machine's speed moves
-from hour to hour (perf/README.md §10), so code is compared side by side, by the ratio of warm wall times.
+from hour to hour, so code is compared side by side, by the ratio of warm wall times.
 """
 
 from __future__ import annotations

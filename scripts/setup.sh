@@ -20,8 +20,8 @@ fi
 # start included, would compile all of it again (~0.2 s of CPU each). Python still checks each .pyc against its
 # source, so an edited module is never run stale; compileall skips what is already up to date.
 # The same for the test suite: pytest caches its assertion-rewritten test modules as bytecode too, and without
-# that cache every xdist worker and every pytest session the tests start rewrites them all again (on 2 cores the
-# README's test command took 6 min 53 s without it, 5 min 52 s with it; perf/README.md §8). Collecting the suite
+# that cache every xdist worker and every pytest session the tests start rewrites them all again (about a sixth of
+# the README's test command on 2 cores). Collecting the suite
 # once with bytecode writing allowed fills both caches (~15 s); a failure here is left for the tests to report.
 compile_src() {
   .venv/bin/python -m compileall -q -j 0 src >/dev/null

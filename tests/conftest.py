@@ -14,8 +14,8 @@ os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("TOKENIZERS_PARALLELISM", "false")
 # Tests never read or write a developer's caches (responses, embeddings, tiny models built elsewhere). Each test
-# process (each xdist worker) has its own cache root: a root shared by the workers was tried and a clean-clone
-# run then found its embedding database malformed (perf/README.md §10).
+# process (each xdist worker) has its own cache root: diskcache's SQLite database shared by concurrent workers
+# can be left malformed.
 
 
 def _remove_if_owner(owner: int, root: str) -> None:
@@ -89,7 +89,7 @@ def torch_one_thread():
 def _tiny_models_shared_by_the_workers(tmp_path_factory):
     """Under pytest-xdist, each worker's cache root gets its models/ folder as a link to one folder of the whole
     session (beside the workers' own temporary folders), so a tiny checkpoint (~5 CPU s) is built once per session
-    rather than once per worker. Safe where the whole cache root was not (perf/README.md §10): a build is plain
+    rather than once per worker. Safe where the whole cache root is not (its SQLite databases): a build is plain
     files made in a temporary folder and renamed into place, and a worker that loses the race uses the winner's
     (vlmproprio.backends.tiny.ensure_tiny_model). Nothing else in the cache root is shared."""
     link = SESSION_CACHE / "models"
