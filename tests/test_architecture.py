@@ -121,6 +121,26 @@ def test_no_evaluation_module_imports_a_later_one(name: str) -> None:
     assert not later, f"vlmproprio.evaluation.{name} imports later evaluation module(s): {', '.join(later)}"
 
 
+# segmentation/: trace → metrics → chance → sweep; a module imports only the ones before it (metrics needs
+# no trace: it scores points, wherever they come from)
+SEGMENTATION_ORDER = ("trace", "metrics", "chance", "sweep")
+
+
+def test_every_segmentation_module_has_a_place_in_the_order() -> None:
+    modules = {p.stem for p in (SRC / "segmentation").glob("*.py") if p.stem != "__init__"}
+    assert modules == set(SEGMENTATION_ORDER)
+
+
+@pytest.mark.parametrize("name", SEGMENTATION_ORDER)
+def test_no_segmentation_module_imports_a_later_one(name: str) -> None:
+    mine = SEGMENTATION_ORDER.index(name)
+    inside = [
+        m.split(".")[1] for m in imported_stages(SRC / "segmentation" / f"{name}.py") if m.startswith("segmentation.")
+    ]
+    later = [m for m in inside if SEGMENTATION_ORDER.index(m) >= mine]
+    assert not later, f"vlmproprio.segmentation.{name} imports a later or its own module: {', '.join(later)}"
+
+
 # ---------------------------------------------------------------------------------------------- shape rules
 
 MAX_FUNCTION_LINES = 80

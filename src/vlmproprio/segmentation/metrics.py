@@ -1,19 +1,4 @@
-"""Subtask segmentation from frame captions (the paper's Sec. III-B) and its comparison with ground truth.
-
-* The similarity trace of an episode is the cosine similarity of each frame
-  caption's embedding with the next one's: ``trace[j] = cos(e_j, e_{j+1})``, so
-  it is indexed like ``Episode.boundaries()``.
-* A segmentation point is a ``j`` with ``trace[j] < threshold`` (a new segment
-  starts at frame ``j + 1``). Thresholds sweep 0.00 ... 1.00 in steps of 0.05.
-* Missing captions (parse status "missing", or an empty text) are kept in place:
-  every pair that has a missing side gets NaN in the trace and never makes a
-  boundary, so the trace stays aligned with frame indices and a model that lost a
-  caption cannot find the boundary next to it.
-* The cosine is computed with exact products of float32 values in float64 and
-  ``math.fsum`` (an exactly rounded sum), so a trace has the same bits on every
-  machine and numpy build, given the cached embeddings.
-
-Against ground truth (every definition, with its reference, is in docs/metrics.md):
+"""Segmentation points against ground truth (every definition, with its reference, is in docs/metrics.md).
 
 * boundary precision / recall / F1 with a tolerance of ``tol`` frames and one-to-one matching, as in
   generic event boundary detection (GEBD; Shou et al., ICCV 2021), with an absolute tolerance in frames
@@ -27,128 +12,23 @@ Against ground truth (every definition, with its reference, is in docs/metrics.m
   segmental F1@{10, 25, 50} (a predicted segment is a true positive when its IoU with the not yet matched
   ground-truth segment of the same label that overlaps it most is >= the threshold), per episode; and
   frame accuracy;
-* ``edit_score_unmerged``: the earlier score of this project, kept under an honest name -- majority-labelled
-  predicted segments *not* merged, so over-segmentation costs insertions (MS-TCN's edit score forgives it);
-* chance baselines (``chance_scores``): the expected score of random boundaries with the same count
-  (``CHANCE_DRAWS`` seeded draws), of evenly spaced boundaries of that count, and of boundaries at the
-  edges of the pipeline's frame groups.
+* ``edit_score_unmerged``: majority-labelled predicted segments *not* merged, so over-segmentation costs
+  insertions (MS-TCN's edit score forgives it under oracle labels).
 
 ``score_masks`` computes every metric for many boundary sets at once (numpy, no Python loop over the sets);
-the sweep, the chance baselines and single predictions all go through it, and tests/test_segmentation_metrics.py
+the sweep, the chance baselines and single predictions all go through it, and tests/segmentation/test_metrics.py
 checks it against a straightforward implementation on thousands of random cases.
 """
 
 from __future__ import annotations
 
-import functools
-import itertools
-import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
-DEFAULT_THRESHOLD = 0.65
-THRESHOLDS: tuple[float, ...] = tuple(k / 20 for k in range(21))
 TOLERANCES: tuple[int, ...] = (0, 1, 2)
-
-
-# ---------------------------------------------------------------------------------------------- trace
-
-
-def caption_present(text: str | None, status: str = "ok") -> bool:
-    """Whether a frame caption takes part in the trace: not missing and not blank."""
-    return status != "missing" and bool(text and text.strip())
-
-
-def cosine(a: np.ndarray, b: np.ndarray) -> float:
-    """Cosine similarity with the same bits everywhere: float32*float32 is exact in float64, fsum is exact."""
-    a64 = np.asarray(a, dtype=np.float32).astype(np.float64)
-    b64 = np.asarray(b, dtype=np.float32).astype(np.float64)
-    dot = math.fsum((a64 * b64).tolist())
-    na2 = math.fsum((a64 * a64).tolist())
-    nb2 = math.fsum((b64 * b64).tolist())
-    if na2 == 0.0 or nb2 == 0.0:
-        return float("nan")
-    # one sqrt of the product: identical vectors give exactly 1.0 (sqrt(x*x) == x in IEEE double)
-    return dot / math.sqrt(na2 * nb2)
-
-
-class CosineCache:
-    """``cosine`` of many pairs among few vectors (a model repeats its captions): each vector's float64 copy and
-    squared norm once, each distinct pair's cosine once. The same ``fsum`` inputs, so the same bits as ``cosine``.
-
-    Vectors are known by identity; the cache holds a reference to each, so an id is never reused while cached."""
-
-    def __init__(self) -> None:
-        self._vectors: dict[int, tuple[np.ndarray, np.ndarray, float]] = {}
-        self._pairs: dict[tuple[int, int], float] = {}
-
-    def _prepared(self, v: np.ndarray) -> tuple[np.ndarray, float]:
-        hit = self._vectors.get(id(v))
-        if hit is None:
-            v64 = np.asarray(v, dtype=np.float32).astype(np.float64)
-            hit = self._vectors[id(v)] = (v, v64, math.fsum((v64 * v64).tolist()))
-        return hit[1], hit[2]
-
-    def cosine(self, a: np.ndarray, b: np.ndarray) -> float:
-        key = (id(a), id(b))
-        c = self._pairs.get(key)
-        if c is None:
-            (a64, na2), (b64, nb2) = self._prepared(a), self._prepared(b)
-            dot = math.fsum((a64 * b64).tolist())
-            c = float("nan") if na2 == 0.0 or nb2 == 0.0 else dot / math.sqrt(na2 * nb2)
-            self._pairs[key] = c
-        return c
-
-
-def cosine_trace(vectors: Sequence[np.ndarray | None], cache: CosineCache | None = None) -> np.ndarray:
-    """trace[j] = cos(v_j, v_{j+1}); NaN where either side is None. Length len(vectors) - 1 (0 if empty).
-
-    ``cache`` (a ``CosineCache``) shares the work between the traces of a run."""
-    n = max(len(vectors) - 1, 0)
-    out = np.full(n, np.nan, dtype=np.float64)
-    cos = cache.cosine if cache is not None else cosine
-    for j in range(n):
-        a, b = vectors[j], vectors[j + 1]
-        if a is not None and b is not None:
-            out[j] = cos(a, b)
-    return out
-
-
-def similarity_trace(
-    texts: Sequence[str | None],
-    embed: Callable[[list[str]], Mapping[str, np.ndarray]],
-    statuses: Sequence[str] | None = None,
-) -> np.ndarray:
-    """The similarity trace of one episode's frame captions.
-
-    ``embed`` maps a list of texts to {text: vector} (``CachedEmbedder.embed``); ``statuses`` are the frame
-    parse statuses (a "missing" caption is a gap even if it has text)."""
-    statuses = list(statuses) if statuses is not None else ["ok"] * len(texts)
-    if len(statuses) != len(texts):
-        raise ValueError(f"{len(texts)} texts but {len(statuses)} statuses")
-    present = [caption_present(t, s) for t, s in zip(texts, statuses, strict=True)]
-    vecs = embed([t for t, p in zip(texts, present, strict=True) if p]) if any(present) else {}
-    return cosine_trace([vecs[t] if p else None for t, p in zip(texts, present, strict=True)])
-
-
-# ---------------------------------------------------------------------------------------------- thresholds
-
-
-def boundaries_at(trace: np.ndarray, threshold: float) -> list[int]:
-    """Segmentation points: indices j with trace[j] < threshold (NaN never is)."""
-    t = np.asarray(trace, dtype=np.float64)
-    return [int(j) for j in np.flatnonzero(t < threshold)]
-
-
-def segment_counts(trace: np.ndarray, thresholds: Sequence[float] = THRESHOLDS) -> list[int]:
-    """Number of segmentation points per threshold (the paper's Fig. 6)."""
-    t = np.asarray(trace, dtype=np.float64)
-    return [int(np.count_nonzero(t < thr)) for thr in thresholds]
-
-
-# ---------------------------------------------------------------------------------------------- metrics
+IOU_THRESHOLDS: tuple[float, ...] = (0.10, 0.25, 0.50)
 
 
 @dataclass(frozen=True)
@@ -236,13 +116,10 @@ def edit_score(pred_segments: Sequence[str], true_segments: Sequence[str]) -> fl
     return (1.0 - levenshtein(pred_segments, true_segments) / m) * 100.0
 
 
-# ---------------------------------------------------------------------------------------------- many at once
-
-IOU_THRESHOLDS: tuple[float, ...] = (0.10, 0.25, 0.50)
-# metrics that get chance baselines and a lift (score - chance); every one is "higher is better"
-CHANCE_METRICS: tuple[str, ...] = ("f1_tol1", "edit", "f1_at_10", "f1_at_25", "f1_at_50", "frame_acc")
-CHANCE_DRAWS = 10000
-CHANCE_SEED = 20261201
+def edit_score_unmerged(boundaries: Sequence[int], true_labels: Sequence[str]) -> float:
+    """An edit score that is not MS-TCN's: majority-labelled predicted segments, *not* merged, against the true
+    segment sequence, so every extra boundary inside a phase costs an insertion."""
+    return edit_score(predicted_segment_labels(boundaries, true_labels), segments_from_labels(true_labels))
 
 
 def iou_key(tau: float) -> str:
@@ -334,7 +211,8 @@ def score_masks(
 
     Frame-wise labels: each predicted segment takes the phase covering most of its frames; ties go to the
     phase that comes first in the episode. The work is done per predicted segment (prefix counts of the
-    phases), not per frame, so 10 000 sets of a few boundaries cost milliseconds. See docs/metrics.md."""
+    phases), not per frame, so the cost grows with the number of boundaries, not of frames. See
+    docs/metrics.md."""
     masks = np.asarray(masks, dtype=bool)
     n = truth.n_frames
     if masks.ndim != 2 or masks.shape[1] != n - 1:
@@ -485,170 +363,3 @@ def masks_of(boundary_sets: Sequence[Sequence[int]], n_frames: int) -> np.ndarra
                 raise ValueError(f"segmentation point {j} outside 0..{n_frames - 2}")
             out[i, j] = True
     return out
-
-
-# ---------------------------------------------------------------------------------------------- chance
-
-
-def evenly_spaced(n_frames: int, k: int) -> list[int]:
-    """k segmentation points cutting n frames into k + 1 segments as equal as possible (rounded half up)."""
-    if not 0 <= k <= n_frames - 1:
-        raise ValueError(f"{k} segmentation points do not fit {n_frames} frames")
-    return [(2 * i * n_frames + k + 1) // (2 * (k + 1)) - 1 for i in range(1, k + 1)]
-
-
-def group_edges(n_frames: int, group: int) -> list[int]:
-    """Segmentation points at the edges of the pipeline's frame groups (frames 0..group-1, group.., ...)."""
-    if group < 1:
-        raise ValueError(f"group size must be >= 1, got {group}")
-    return [j for j in range(group - 1, n_frames - 1, group)]
-
-
-@functools.lru_cache(maxsize=16)
-def random_orders(n_positions: int, draws: int, seed: int) -> np.ndarray:
-    """``draws`` uniformly random orderings of the n positions (seeded); read-only.
-
-    The first k positions of a uniformly random ordering are a uniform k-subset, so one set of orderings
-    serves every count k of an episode length (the estimates for different k share their draws)."""
-    rng = np.random.Generator(np.random.PCG64([seed, n_positions]))
-    order = np.argsort(rng.random((draws, n_positions)), axis=1, kind="stable")
-    order.flags.writeable = False
-    return order
-
-
-def random_positions(n_positions: int, k: int, draws: int, seed: int) -> np.ndarray:
-    """``draws`` uniform k-subsets of the n positions, ascending per row."""
-    return np.sort(random_orders(n_positions, draws, seed)[:, :k], axis=1)
-
-
-def random_masks(n_positions: int, k: int, draws: int, seed: int) -> np.ndarray:
-    """``random_positions`` as boolean masks."""
-    out = np.zeros((draws, n_positions), dtype=bool)
-    if k:
-        np.put_along_axis(out, random_positions(n_positions, k, draws, seed), True, axis=1)
-    return out
-
-
-def chance_random(
-    truth: Truth, k: int, metrics: Sequence[str] = CHANCE_METRICS, draws: int = CHANCE_DRAWS, seed: int = CHANCE_SEED
-) -> dict[str, float]:
-    """Expected score of k segmentation points placed uniformly at random among the n - 1 positions.
-
-    Exact when there are at most ``draws`` possible sets (all of them are scored: every k-subset is equally
-    likely); otherwise the mean over ``draws`` seeded draws. Sums are exact (``math.fsum``)."""
-    n_pos = truth.n_frames - 1
-    if not 0 <= k <= n_pos:
-        raise ValueError(f"{k} segmentation points do not fit {truth.n_frames} frames")
-    if math.comb(n_pos, k) <= draws:
-        combos = itertools.chain.from_iterable(itertools.combinations(range(n_pos), k))
-        pos = np.fromiter(combos, np.int64, count=math.comb(n_pos, k) * k).reshape(math.comb(n_pos, k), k)
-    else:
-        pos = random_positions(n_pos, k, draws, seed)
-    tols = sorted({int(m.removeprefix("f1_tol")) for m in metrics if m.startswith("f1_tol")})
-    scores = score_positions(pos, np.full(len(pos), k, dtype=np.int64), truth, tols)
-    return {m: math.fsum(scores[m].tolist()) / len(pos) for m in metrics}
-
-
-def chance_is_exact(n_frames: int, k: int, draws: int = CHANCE_DRAWS) -> bool:
-    return math.comb(max(n_frames - 1, 0), k) <= draws
-
-
-def score_points(points: Sequence[int], truth: Truth, metrics: Sequence[str] = CHANCE_METRICS) -> dict[str, float]:
-    """The metrics of one set of segmentation points."""
-    scores = score_masks(masks_of([points], truth.n_frames), truth)
-    return {m: float(scores[m][0]) for m in metrics}
-
-
-# ---------------------------------------------------------------------------------------------- sweep
-
-
-def edit_score_unmerged(boundaries: Sequence[int], true_labels: Sequence[str]) -> float:
-    """This project's earlier "edit" score (not MS-TCN's): majority-labelled predicted segments, *not* merged,
-    against the true segment sequence, so every extra boundary inside a phase costs an insertion."""
-    return edit_score(predicted_segment_labels(boundaries, true_labels), segments_from_labels(true_labels))
-
-
-@dataclass(frozen=True)
-class SweepPoint:
-    threshold: float
-    points: int
-    prf: dict[int, PRF]  # by tolerance
-    edit: float  # MS-TCN segmental edit score
-    segmental: dict[str, float]  # f1_at_10/25/50, frame_acc
-    edit_unmerged: float
-
-    def flat(self) -> dict:
-        d: dict = {"threshold": self.threshold, "points": self.points}
-        for tol, m in sorted(self.prf.items()):
-            d[f"p_tol{tol}"] = m.precision
-            d[f"r_tol{tol}"] = m.recall
-            d[f"f1_tol{tol}"] = m.f1
-        d["edit"] = self.edit
-        d.update(self.segmental)
-        d["edit_unmerged"] = self.edit_unmerged
-        return d
-
-
-def _score_distinct_masks(masks: np.ndarray, truth: Truth, tolerances: Sequence[int]) -> dict[str, np.ndarray]:
-    """``score_masks(masks, ...)``, each distinct row scored once (most thresholds of a sweep cut a trace at the
-    same points). The same numbers: every metric is computed row by row, and the widths the rows are padded
-    to (the most points, the most merged segments) are those of the whole set, whose extreme rows stay in."""
-    first: dict[bytes, int] = {}
-    inverse = np.array([first.setdefault(row.tobytes(), i) for i, row in enumerate(masks)], dtype=np.int64)
-    if len(first) == len(masks):
-        return score_masks(masks, truth, tolerances)
-    rows = np.array(sorted(first.values()), dtype=np.int64)
-    slot = np.empty(len(masks), dtype=np.int64)
-    slot[rows] = np.arange(len(rows))
-    scores = score_masks(masks[rows], truth, tolerances)
-    return {name: values[slot[inverse]] for name, values in scores.items()}
-
-
-def sweep(
-    trace: np.ndarray,
-    true_labels: Sequence[str],
-    thresholds: Sequence[float] = THRESHOLDS,
-    tolerances: Sequence[int] = TOLERANCES,
-) -> list[SweepPoint]:
-    """Segmentation at each threshold against the ground-truth frame phases (one ``score_masks`` call)."""
-    n = len(true_labels)
-    t = np.asarray(trace, dtype=np.float64)
-    if len(t) != max(n - 1, 0):
-        raise ValueError(f"trace of length {len(t)} for {n} frames (expected {max(n - 1, 0)})")
-    truth = truth_of(true_labels)
-    masks = np.stack([t < thr for thr in thresholds]) if len(thresholds) else np.zeros((0, n - 1), dtype=bool)
-    sc = _score_distinct_masks(masks, truth, tolerances)
-    m = len(truth.boundaries)
-    out = []
-    unmerged_of: dict[tuple[int, ...], float] = {}  # neighbouring thresholds often give the same points
-    for i, thr in enumerate(thresholds):
-        k = int(sc["points"][i])
-        prf = {
-            tol: PRF(
-                float(sc[f"p_tol{tol}"][i]),
-                float(sc[f"r_tol{tol}"][i]),
-                float(sc[f"f1_tol{tol}"][i]),
-                int(sc[f"tp_tol{tol}"][i]),
-                k,
-                m,
-            )
-            for tol in tolerances
-        }
-        seg = {iou_key(tau): float(sc[iou_key(tau)][i]) for tau in IOU_THRESHOLDS}
-        seg["frame_acc"] = float(sc["frame_acc"][i])
-        pts = tuple(boundaries_at(t, thr))
-        if pts not in unmerged_of:
-            unmerged_of[pts] = edit_score_unmerged(pts, true_labels)
-        unmerged = unmerged_of[pts]
-        out.append(SweepPoint(thr, k, prf, float(sc["edit"][i]), seg, unmerged))
-    return out
-
-
-def evaluate_segmentation(
-    trace: np.ndarray,
-    true_labels: Sequence[str],
-    threshold: float,
-    tolerances: Sequence[int] = TOLERANCES,
-) -> SweepPoint:
-    """Segmentation at one threshold against the ground-truth frame phases."""
-    return sweep(trace, true_labels, (threshold,), tolerances)[0]

@@ -1,4 +1,5 @@
-"""The segmentation metrics against a straightforward implementation written here, on thousands of random cases.
+"""The segmentation metrics: hand-made cases with known answers, then a straightforward implementation written
+here, on thousands of random cases.
 
 The reference functions below do not call vlmproprio: they follow the published definitions literally --
 MS-TCN's evaluation (Farha & Gall, CVPR 2019, ``eval.py``: ``get_labels_start_end_time``, ``levenstein``,
@@ -9,26 +10,126 @@ MS-TCN's evaluation (Farha & Gall, CVPR 2019, ``eval.py``: ``get_labels_start_en
 from __future__ import annotations
 
 import itertools
-import math
 import random
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
-from vlmproprio.segmentation import (
-    CHANCE_METRICS,
-    chance_random,
-    evenly_spaced,
-    group_edges,
+from vlmproprio.segmentation.metrics import (
+    boundary_prf,
+    edit_score,
     masks_of,
-    random_masks,
+    predicted_segment_labels,
     score_masks,
-    sweep,
+    segments_from_labels,
     truth_of,
 )
 
 N_CASES = 1500
 TOL = 1e-9
+
+
+# ---------------------------------------------------------------------------------------------- known answers
+
+
+# (pred, truth, tol, precision, recall, f1)
+PRF_CASES = [
+    ([3], [3], 0, 1.0, 1.0, 1.0),
+    ([2], [3], 0, 0.0, 0.0, 0.0),
+    ([2], [3], 1, 1.0, 1.0, 1.0),
+    ([1], [3], 1, 0.0, 0.0, 0.0),
+    ([1], [3], 2, 1.0, 1.0, 1.0),
+    ([2, 3, 4], [3], 1, 1 / 3, 1.0, 0.5),  # one-to-one: a true boundary is found once
+    ([3], [2, 4], 1, 1.0, 0.5, 2 / 3),
+    ([2, 3], [1, 3], 1, 1.0, 1.0, 1.0),  # greedy must not let 2 steal 3 from prediction 3
+    ([1, 5], [2, 6], 0, 0.0, 0.0, 0.0),
+    ([1, 5], [2, 6], 1, 1.0, 1.0, 1.0),
+    ([1, 4, 9], [1, 5, 7], 1, 2 / 3, 2 / 3, 2 / 3),
+    ([], [], 1, 1.0, 1.0, 1.0),
+    ([], [4], 1, 0.0, 0.0, 0.0),
+    ([4], [], 1, 0.0, 0.0, 0.0),
+]
+
+
+@pytest.mark.parametrize(("pred", "truth", "tol", "p", "r", "f1"), PRF_CASES)
+def test_boundary_prf_known_answers(pred, truth, tol, p, r, f1):
+    m = boundary_prf(pred, truth, tol)
+    assert (m.precision, m.recall, m.f1) == pytest.approx((p, r, f1))
+
+
+@given(
+    st.lists(st.integers(0, 40), max_size=12),
+    st.lists(st.integers(0, 40), max_size=12),
+    st.integers(0, 3),
+)
+def test_boundary_prf_matches_brute_force(pred, truth, tol):
+    """Greedy matching equals a maximum one-to-one matching (brute force by augmenting paths)."""
+    p, t = sorted(set(pred)), sorted(set(truth))
+    match: dict[int, int] = {}
+
+    def augment(i: int, seen: set) -> bool:
+        for j, y in enumerate(t):
+            if abs(p[i] - y) <= tol and j not in seen:
+                seen.add(j)
+                if j not in match or augment(match[j], seen):
+                    match[j] = i
+                    return True
+        return False
+
+    best = sum(augment(i, set()) for i in range(len(p)))
+    assert boundary_prf(pred, truth, tol).tp == best
+
+
+# (pred segments, true segments, edit score)
+EDIT_CASES = [
+    (["a", "b", "c"], ["a", "b", "c"], 100.0),
+    (["a", "a", "b", "c"], ["a", "b", "c"], 75.0),
+    (["a", "c"], ["a", "b", "c"], 100 * (1 - 1 / 3)),
+    (["c", "b", "a"], ["a", "b", "c"], 100 * (1 - 2 / 3)),
+    ([], [], 100.0),
+    ([], ["a", "b"], 0.0),
+]
+
+
+@pytest.mark.parametrize(("pred", "truth", "score"), EDIT_CASES)
+def test_edit_score_known_answers(pred, truth, score):
+    assert edit_score(pred, truth) == pytest.approx(score)
+
+
+LABELS = ["a", "a", "a", "b", "b", "c"]
+
+
+@pytest.mark.parametrize(
+    ("boundaries", "segments", "edit"),
+    [
+        ([2, 4], ["a", "b", "c"], 100.0),
+        ([], ["a"], 100 * (1 - 2 / 3)),
+        ([0, 2, 4], ["a", "a", "b", "c"], 75.0),  # over-segmentation costs an insertion
+        ([3], ["a", "b"], 100 * (1 - 1 / 3)),  # frames 0..3 mostly a; 4..5 tie b/c -> earliest (b)
+    ],
+)
+def test_predicted_segments_and_edit(boundaries, segments, edit):
+    got = predicted_segment_labels(boundaries, LABELS)
+    assert got == segments
+    assert edit_score(got, segments_from_labels(LABELS)) == pytest.approx(edit)
+
+
+def test_known_answers_msts_edit_merges_and_f1_at_iou():
+    labels = ["a"] * 5 + ["b"] * 5
+    truth = truth_of(labels)
+    # over-segmentation inside phase a: merged away by MS-TCN's edit score (100), F1@50 perfect
+    s = score_masks(masks_of([[1, 4]], 10), truth)
+    assert s["edit"][0] == 100.0 and s["f1_at_50"][0] == 1.0 and s["frame_acc"][0] == 1.0
+    # no boundary: one segment labelled a (tie 5/5 -> the earlier phase): edit 50, F1@10 = 2*(1*0.5)/1.5
+    s = score_masks(masks_of([[]], 10), truth)
+    assert s["edit"][0] == 50.0
+    assert s["f1_at_10"][0] == pytest.approx(2 / 3)
+    assert s["frame_acc"][0] == 0.5
+    # boundary one frame late: IoU of a is 5/6, of b 4/5: both hit at 50
+    s = score_masks(masks_of([[5]], 10), truth)
+    assert s["f1_at_50"][0] == 1.0 and s["f1_tol0"][0] == 0.0 and s["f1_tol1"][0] == 1.0
 
 
 # ---------------------------------------------------------------------------------------------- reference
@@ -197,69 +298,3 @@ def test_many_sets_at_once_equal_one_at_a_time():
         one = score_masks(masks_of([s], len(labels)), truth)
         for key in batch:
             assert batch[key][i] == one[key][0]
-
-
-def test_known_answers_msts_edit_merges_and_f1_at_iou():
-    labels = ["a"] * 5 + ["b"] * 5
-    truth = truth_of(labels)
-    # over-segmentation inside phase a: merged away by MS-TCN's edit score (100), F1@50 perfect
-    s = score_masks(masks_of([[1, 4]], 10), truth)
-    assert s["edit"][0] == 100.0 and s["f1_at_50"][0] == 1.0 and s["frame_acc"][0] == 1.0
-    # no boundary: one segment labelled a (tie 5/5 -> the earlier phase): edit 50, F1@10 = 2*(1*0.5)/1.5
-    s = score_masks(masks_of([[]], 10), truth)
-    assert s["edit"][0] == 50.0
-    assert s["f1_at_10"][0] == pytest.approx(2 / 3)
-    assert s["frame_acc"][0] == 0.5
-    # boundary one frame late: IoU of a is 5/6, of b 4/5: both hit at 50
-    s = score_masks(masks_of([[5]], 10), truth)
-    assert s["f1_at_50"][0] == 1.0 and s["f1_tol0"][0] == 0.0 and s["f1_tol1"][0] == 1.0
-
-
-def test_sweep_columns_come_from_score_masks():
-    labels = ["a"] * 4 + ["b"] * 4 + ["c"] * 4
-    trace = np.array([0.9, 0.9, 0.9, 0.2, 0.9, 0.9, 0.5, 0.3, 0.9, 0.9, 0.9])
-    pts = sweep(trace, labels, (0.0, 0.25, 0.4, 1.0))
-    assert [p.points for p in pts] == [0, 1, 2, 11]
-    assert pts[2].prf[0].f1 == 1.0 and pts[2].edit == 100.0
-    assert pts[3].edit_unmerged < 100.0 and pts[3].edit == 100.0  # the honest name: over-segmentation costs
-
-
-# ---------------------------------------------------------------------------------------------- chance
-
-
-def test_random_masks_are_uniform_k_subsets():
-    masks = random_masks(6, 2, 30000, seed=1)
-    assert (masks.sum(axis=1) == 2).all()
-    counts: dict[tuple, int] = {}
-    for row in masks:
-        key = tuple(np.flatnonzero(row))
-        counts[key] = counts.get(key, 0) + 1
-    assert len(counts) == math.comb(6, 2)
-    expected = 30000 / 15
-    chi2 = sum((c - expected) ** 2 / expected for c in counts.values())
-    assert chi2 < 36.1  # chi-square, 14 degrees of freedom, p = 0.001
-    assert (random_masks(6, 2, 50, seed=1) == masks[:50]).all()  # seeded
-
-
-@pytest.mark.parametrize(("labels", "k"), [(["a"] * 3 + ["b"] * 4 + ["c"] * 3, 2), (["x"] * 6 + ["y"] * 6, 4)])
-def test_chance_random_agrees_with_exact_enumeration(labels, k):
-    truth = truth_of(labels)
-    n_pos = len(labels) - 1
-    subsets = [list(c) for c in itertools.combinations(range(n_pos), k)]
-    every = score_masks(masks_of(subsets, len(labels)), truth)
-    got = chance_random(truth, k)
-    for m in CHANCE_METRICS:
-        exact = float(np.mean(every[m]))
-        se = float(np.std(every[m])) / math.sqrt(10000)
-        assert abs(got[m] - exact) <= 5 * se + 1e-12, (m, got[m], exact)
-
-
-def test_evenly_spaced_and_group_edges():
-    assert evenly_spaced(10, 1) == [4]
-    assert evenly_spaced(10, 4) == [1, 3, 5, 7]
-    assert evenly_spaced(10, 9) == list(range(9))
-    assert evenly_spaced(10, 0) == []
-    assert group_edges(12, 5) == [4, 9]
-    assert group_edges(10, 5) == [4]
-    with pytest.raises(ValueError):
-        evenly_spaced(5, 5)
