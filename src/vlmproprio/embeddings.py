@@ -72,9 +72,11 @@ class EncoderSpec:
 
     @property
     def key(self) -> str:
-        """The cache key part of the encoder. Threads are left out: the encoder's bits do not depend on them
-        (tested); the path is left out so a moved model folder keeps its cache."""
-        return f"{self.name}@{self.revision}|float32|batch={self.batch_size}|{BATCHING_SCHEME}"
+        """The cache key part of the encoder. The thread count is in it unless it is the default one: on some
+        CPUs (seen on an Intel Xeon, not on an AMD EPYC) torch splits a reduction differently with two threads,
+        so the bits depend on it. The path is left out so a moved model folder keeps its cache."""
+        key = f"{self.name}@{self.revision}|float32|batch={self.batch_size}|{BATCHING_SCHEME}"
+        return key if self.threads == DEFAULT_THREADS else f"{key}|threads={self.threads}"
 
     def to_dict(self) -> dict:
         d = asdict(self)
