@@ -206,6 +206,7 @@ def _image_words(cam: CameraAxes | None) -> tuple[str | None, tuple[tuple[str, s
 
 
 def expectation_for(episode: Episode, lexicon: Lexicon | None = None) -> Expectation:
+    """What a correct caption of ``episode`` says, in the words of ``lexicon`` (default: its task's)."""
     lex = lexicon or load_lexicon(episode.task)
     cam = camera_axes(episode)
     vectors = direction_vectors(cam)

@@ -114,7 +114,7 @@ def _words(text: str) -> list[str]:
 
 
 def _lexicon_dir():
-    # package data of vlmproprio (pyproject: lexicons/*.json), not a package of its own
+    # package data of vlmproprio (pyproject.toml's package-data), not a package of its own
     return resources.files("vlmproprio").joinpath("lexicons")
 
 
