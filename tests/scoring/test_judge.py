@@ -14,12 +14,21 @@ from pathlib import Path
 
 import pytest
 
-from scoring_helpers import prefill_embeddings, write_synthetic_run
+from scoring_helpers import door_episode, prefill_embeddings, write_synthetic_run
 from vlmproprio.cassettes import read_cassette
 from vlmproprio.cli import main
 from vlmproprio.embeddings import encoder_spec
 from vlmproprio.report.data import load_run_scores
 from vlmproprio.report.tables import report_tables, to_markdown
+from vlmproprio.scoring import (
+    ItemScore,
+    ScoringError,
+    judge_agreement,
+    judge_captions,
+    judge_request,
+    parse_judge_answer,
+    score_caption,
+)
 from vlmproprio.testing.openai_server import FakeOpenAIServer
 
 
@@ -96,3 +105,61 @@ def test_openai_judge_replays_and_the_report_shows_kappa(small_run, tmp_path, mo
     kappa = recorded["agreement"]["items"]["object_mentioned"]["kappa"]
     assert kappa is None or isinstance(kappa, float)
     assert recorded["agreement"]["unparsed"] == 2  # bin1_00 under both conditions
+
+
+# ---------------------------------------------------------------------------------------------- the judge's parts
+
+
+def test_a_judge_answer_is_read_from_its_first_json_object():
+    raw = 'Sure. {"object": {"mentioned": true, "correct": true}, "action": {"mentioned": true, "correct": false},'
+    raw += ' "trajectory": {"mentioned": false, "correct": true}} and more {}'
+    v = parse_judge_answer(raw)
+    assert v.error == "" and v.raw == raw
+    assert v.items["object"] == ItemScore(True, True, False)
+    assert v.items["action"] == ItemScore(True, False, True)
+    assert v.items["trajectory"] == ItemScore(False, False, False)  # correct without a mention is not correct
+    assert v.to_dict()["items"]["action"] == {"mentioned": True, "correct": False, "wrong": True}
+
+
+@pytest.mark.parametrize(
+    ("raw", "error"),
+    [
+        ("no verdict", "no JSON object"),
+        ("{not json", "unusable answer (JSONDecodeError"),
+        ('{"object": {"mentioned": true, "correct": true}}', "unusable answer (KeyError"),
+        ('{"object": {"mentioned": "yes", "correct": true}}', "unusable answer (TypeError: object"),
+    ],
+)
+def test_an_unusable_judge_answer_is_a_verdict_with_an_error(raw, error):
+    v = parse_judge_answer(raw)
+    assert v.items is None and v.error.startswith(error)
+
+
+def test_judge_request_states_the_episodes_ground_truth():
+    ep = door_episode()
+    req = judge_request("It opens the door.", ep, "both")
+    assert req.tag.stage == "judge" and req.tag.condition == "both" and req.tag.episode_id == ep.episode_id
+    assert req.config.temperature == 0.0 and req.prompt_version.startswith("judge-v")
+    user = req.messages[-1].parts[-1].text
+    assert "It opens the door." in user and "pull door:" in user
+
+
+def test_judge_captions_refuses_a_short_answer():
+    with pytest.raises(ScoringError, match="judge answered 0 of 1 requests"):
+        judge_captions(lambda requests: [], [("It opens the door.", door_episode(), "none")])
+    assert judge_captions(lambda requests: [], []) == []
+
+
+def test_agreement_counts_unparsed_verdicts_and_gives_kappa():
+    ep = door_episode()
+    rubric = [score_caption(t, ep) for t in ("It opens the door.", "The robot waves.", "It pulls the door.")]
+    yes = {"mentioned": True, "correct": True}
+    no = {"mentioned": False, "correct": False}
+    answers = [{"object": yes, "action": yes, "trajectory": no}, {"object": no, "action": no, "trajectory": no}]
+    verdicts = [parse_judge_answer(json.dumps(a)) for a in answers] + [parse_judge_answer("?")]
+    out = judge_agreement(rubric, verdicts)
+    assert out["n"] == 3 and out["unparsed"] == 1
+    assert out["items"]["object_mentioned"] == {"n": 2, "agreement": 1.0, "kappa": 1.0}
+    assert out["items"]["trajectory_mentioned"]["kappa"] is None  # one class only: kappa undefined
+    with pytest.raises(ValueError, match="3 rubric scores but 2 judge verdicts"):
+        judge_agreement(rubric, verdicts[:2])

@@ -2,9 +2,9 @@
 
 ``tests/data/rubric_agreement.jsonl`` holds one caption per line with the episode it describes (a shipped
 fixture episode) and six hand-made labels: object / action / trajectory x mentioned / correct. The labels
-say what a person who knows the episode's ground truth decides, not what the scorer says; they were written
-before the scorer was changed. The test fails when the rubric agrees on fewer than 95 % of the labels and
-prints every disagreement, so a regression names the caption and the label.
+say what a person who knows the episode's ground truth decides, not what the scorer says. The test fails
+when the rubric agrees on fewer than 95 % of the labels and prints every disagreement, so a regression names
+the caption and the label.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 from vlmproprio.episodes import load_episode
 from vlmproprio.scoring import ITEMS, score_caption
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 AGREEMENT_SET = ROOT / "tests" / "data" / "rubric_agreement.jsonl"
 FIXTURES = ROOT / "fixtures"
 MIN_AGREEMENT = 0.95

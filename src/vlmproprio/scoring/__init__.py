@@ -1,0 +1,108 @@
+"""Caption scoring: the lexicons, what an episode's correct caption says, the rubric and an optional judge.
+
+Data flows one way through the package: ``lexicon`` (word lists and rules) → ``expectation`` (an episode's
+ground truth in the lexicon's words) and ``matching`` (a caption in the lexicon's terms) → ``rubric`` (the
+analysis judged against the expectation) → ``judge`` (a model's grades and their agreement with the rubric).
+Everything public is re-exported here: ``from vlmproprio.scoring import score_caption``.
+"""
+
+from vlmproprio.scoring.expectation import (
+    AXIS_COS,
+    MIN_MOVE_M,
+    ROBOT_VECTORS,
+    CameraAxes,
+    Expectation,
+    MotionExpectation,
+    camera_axes,
+    direction_vectors,
+    directions_of,
+    expectation_for,
+    phase_displacement,
+)
+from vlmproprio.scoring.judge import (
+    JudgeVerdict,
+    judge_agreement,
+    judge_captions,
+    judge_prompt,
+    judge_request,
+    parse_judge_answer,
+)
+from vlmproprio.scoring.lexicon import (
+    AXES,
+    CAMERAS_FILE,
+    COMMON_LEXICON,
+    LEXICON_PACKAGE,
+    NOT_TASKS,
+    CompartmentRules,
+    Contextual,
+    Lexicon,
+    Motion,
+    ScoringError,
+    Tag,
+    Term,
+    available_tasks,
+    load_lexicon,
+)
+from vlmproprio.scoring.matching import TextAnalysis, Token, analyse_text, tokenize
+from vlmproprio.scoring.rubric import (
+    CORRECT,
+    IGNORED,
+    ITEMS,
+    KEYWORD_VERDICTS,
+    MENTIONED,
+    WRONG,
+    CaptionScore,
+    Hit,
+    ItemScore,
+    score_caption,
+    score_text,
+)
+
+__all__ = [
+    "AXES",
+    "AXIS_COS",
+    "CAMERAS_FILE",
+    "COMMON_LEXICON",
+    "CORRECT",
+    "IGNORED",
+    "ITEMS",
+    "KEYWORD_VERDICTS",
+    "LEXICON_PACKAGE",
+    "MENTIONED",
+    "MIN_MOVE_M",
+    "NOT_TASKS",
+    "ROBOT_VECTORS",
+    "WRONG",
+    "CameraAxes",
+    "CaptionScore",
+    "CompartmentRules",
+    "Contextual",
+    "Expectation",
+    "Hit",
+    "ItemScore",
+    "JudgeVerdict",
+    "Lexicon",
+    "Motion",
+    "MotionExpectation",
+    "ScoringError",
+    "Tag",
+    "Term",
+    "TextAnalysis",
+    "Token",
+    "analyse_text",
+    "available_tasks",
+    "camera_axes",
+    "direction_vectors",
+    "directions_of",
+    "expectation_for",
+    "judge_agreement",
+    "judge_captions",
+    "judge_prompt",
+    "judge_request",
+    "load_lexicon",
+    "parse_judge_answer",
+    "phase_displacement",
+    "score_caption",
+    "score_text",
+    "tokenize",
+]
