@@ -1,6 +1,6 @@
 """The metric table: one MetricSpec per score column, and every list of metrics derived from it.
 
-A metric is named here once. The paired statistics, the report's tables and headline, ``vlmproprio compare``,
+A metric is named here once. The paired statistics, the report's tables and headline, the compare command,
 the benchmark's regression gates, the inspect scorers and the table in docs/metrics.md all read ``METRICS``
 (through the functions below), so none of them keeps a list of names of its own. Adding a metric is one row
 here; a metric no scoring stage writes yet brings its function as ``compute`` (evaluation.cells adds its
@@ -69,7 +69,7 @@ class MetricSpec:
     gated: Gate = ""
     gate_key: str = ""  # exact gates: the value's dotted path in the YAML baseline
     primary: bool = False  # the metric of a pre-registered primary hypothesis (the packaged claims.yml)
-    compare: bool = False  # what `vlmproprio compare` compares by default
+    compare: bool = False  # what the compare command compares by default
     report: Report = ""  # the report's aggregate table that shows it
     headline: bool = False  # in the report's summary table
     compute: Callable[[CellView], float | int | None] | None = None
