@@ -1,7 +1,8 @@
 """What the regression gates compare, per (model, episode, condition) cell.
 
 Counts, booleans and keyword hits are compared exactly (YAML baselines); every float is compared with
-FLOAT_TOLERANCE (CSV baselines). Only what depends on the cell alone is gated here: the out-of-sample
+FLOAT_TOLERANCE (CSV baselines); which metric is gated how is a column of the metric table
+(vlmproprio.evaluation.metrics.METRICS). Only what depends on the cell alone is gated here: the out-of-sample
 (leave-one-episode-out) segmentation depends on the other episodes of the task, so it is judged by
 benchmark/test_claims.py on whole runs, not per cell. Replay from cassettes is bit-identical, so a difference is a real
 change: of the pipeline, the prompts, the parser, the lexicons, the encoder or the model's answers.
@@ -12,7 +13,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from vlmproprio.scoring import ITEMS
+from vlmproprio.evaluation.metrics import METRICS, gated_metrics
 
 BASELINES = Path(__file__).parent / "baselines"
 # absolute and relative tolerance for float metrics (rates, F1, similarities)
@@ -24,28 +25,17 @@ def baseline_path(model_slug: str, episode_id: str, condition: str, suffix: str)
 
 
 def exact_metrics(row: dict, sweep: list[dict]) -> dict:
-    return {
-        "parse": {
-            "frames": row["n_frames"],
-            "frames_missing": row["frames_missing"],
-            "frames_recovered": row["frames_recovered"],
-            "scenes": row["n_scenes"],
-            "scenes_missing": row["scenes_missing"],
-            "final_missing": row["final_missing"],
-        },
-        "final_caption": {
-            "words": row["final_words"],
-            "keyword_hits": row["final_hits"],
-            **{item: {k: row[f"final_{item}_{k}"] for k in ("mentioned", "correct", "wrong")} for item in ITEMS},
-            "all_correct": row["final_all_correct"],
-        },
-        "segmentation": {
-            "ground_truth_boundaries": row["seg_gt_boundaries"],
-            "threshold": row["seg_threshold"],
-            "points_at_threshold": row["seg_points"],
-            "points_per_threshold": {f"{r['threshold']:.2f}": r["points"] for r in sweep},
-        },
-    }
+    """The exactly gated metrics of the metric table, nested by their ``gate_key``, and the points per threshold."""
+    out: dict = {}
+    for spec in METRICS:
+        if spec.gated == "exact":
+            *groups, key = spec.gate_key.split(".")
+            node = out
+            for g in groups:
+                node = node.setdefault(g, {})
+            node[key] = row[spec.name]
+    out["segmentation"]["points_per_threshold"] = {f"{r['threshold']:.2f}": r["points"] for r in sweep}
+    return out
 
 
 def _float(value) -> float:
@@ -55,15 +45,8 @@ def _float(value) -> float:
 
 
 def float_metrics(row: dict) -> dict[str, list[float]]:
-    names = ["final_hits_per_word", "scene_words"]
-    names += [f"scene_{item}_{k}" for item in ITEMS for k in ("mentioned", "correct", "wrong")]
-    names += ["scene_all_correct"]
-    names += [f"seg_{m}_tol{t}" for t in (0, 1, 2) for m in ("p", "r", "f1")]
-    names += ["seg_edit", "seg_edit_unmerged", "seg_f1_at_10", "seg_f1_at_25", "seg_f1_at_50", "seg_frame_acc"]
-    # chance baselines for the cell's number of points, and the lift over random chance
-    names += [f"seg_{m}_{k}" for m in ("f1_tol1", "edit", "f1_at_25") for k in ("chance", "even", "lift")]
-    names += ["seg_groups_f1_tol1", "sim_mean", "sim_min"]
-    return {n: [_float(row[n])] for n in names}
+    """The metric table's metrics gated within FLOAT_TOLERANCE, in its order (the CSV baseline's columns)."""
+    return {n: [_float(row[n])] for n in gated_metrics("float")}
 
 
 def sweep_metrics(sweep: list[dict]) -> dict[str, list[float]]:

@@ -89,6 +89,7 @@ def test_no_module_imports_a_later_stage(module: str, path: Path) -> None:
 
 # evaluation/ is one stage made of modules in the order score_run runs them; inside it data flows one way too
 EVALUATION_ORDER = (
+    "metrics",
     "definitions",
     "formats",
     "inputs",

@@ -67,7 +67,8 @@ from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, GenerationConfig, I
 from vlmproprio.conditions import frame_states, get_condition, parse_conditions
 from vlmproprio.episodes import Episode, frame_images, load_episodes
 from vlmproprio.errors import UsageError, VlmproprioError
-from vlmproprio.evaluation import PAIRED_METRICS, score_run
+from vlmproprio.evaluation import score_run
+from vlmproprio.evaluation.metrics import caption_metrics, segmentation_paired
 from vlmproprio.locations import resolve_fixtures
 from vlmproprio.pipeline import CellRun, PipelineSettings
 from vlmproprio.segmentation import DEFAULT_THRESHOLD, caption_present
@@ -75,11 +76,11 @@ from vlmproprio.transcripts import Transcript, cell_key, cell_name, write_transc
 
 DEFAULT_FIXTURES = ""  # "": --fixtures rules of the CLI ($VLMPROPRIO_FIXTURES, else the repository's)
 TRANSCRIPT_KEY = "vlmproprio.transcript"
-# The scores' own list of headline metrics (what `vlmproprio compare RUN_A` pairs), split by what they measure.
-RUBRIC_METRICS = tuple(m for m in PAIRED_METRICS if m.startswith("final_"))
+# The metrics the scores pair between conditions (the metric table's paired ones), split by what they measure.
+RUBRIC_METRICS = caption_metrics()
 # at the fixed threshold: one sample cannot choose a threshold on the other episodes (the leave-one-episode-out
 # scores of `vlmproprio score RUN_DIR` need the whole run), so the out-of-sample columns become their fixed-threshold twins
-SEGMENTATION_METRICS = tuple(m.replace("seg_loo_", "seg_") for m in PAIRED_METRICS if m.startswith("seg_"))
+SEGMENTATION_METRICS = tuple(m.replace("seg_loo_", "seg_") for m in segmentation_paired())
 IMAGE_DATA_PREFIX = "data:"
 RUN_MODEL = "inspect"  # the model's folder name in the one-transcript run the scorers hand to score_run
 

@@ -11,8 +11,10 @@ from typing import NamedTuple
 import numpy as np
 
 from vlmproprio.episodes import Episode
+from vlmproprio.evaluation import metrics
 from vlmproprio.evaluation.captions import Cell, EmbeddedCaptions
 from vlmproprio.evaluation.inputs import RunInputs
+from vlmproprio.evaluation.metrics import CellView, computed_columns
 from vlmproprio.parallel import map_groups
 from vlmproprio.scoring import (
     ITEMS,
@@ -184,7 +186,15 @@ def _row(
         "seg_gt_boundaries": len(ep.boundaries()),
         **{f"seg_{k}": v for k, v in at.flat().items() if k != "threshold"},
         **_trace_stats(trace),
+        **_computed(CellView(t, ep, c.final, c.scenes, statuses, at, trace, threshold)),
     }
+
+
+def _computed(view: CellView) -> dict:
+    """The columns of the metric table's metrics that bring their own function (read at call time, so a table
+    extended at run time counts too)."""
+    table = metrics.METRICS
+    return computed_columns(view, table) if any(m.compute is not None for m in table) else {}
 
 
 def _add_outputs(o: ModelOutputs, ep: Episode, texts: list[str], statuses: list[str], c: _Captions) -> None:

@@ -1,7 +1,7 @@
 """The names scoring shares with its readers: the scores' version, the metrics compared, the settings of a score.
 
-The metric lists are defined once here: the paired statistics use PAIRED_METRICS, and the report and
-the compare command build theirs from CAPTION_METRICS and FINAL_TOTALS, so the three cannot drift apart.
+The metric lists are derived from the one metric table (evaluation.metrics): the paired statistics use
+PAIRED_METRICS; the report, compare and the inspect scorers read the table too, so none can drift apart.
 """
 
 from __future__ import annotations
@@ -9,28 +9,15 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+from vlmproprio.evaluation.metrics import caption_metrics, final_totals, paired_metrics
 from vlmproprio.segmentation import DEFAULT_THRESHOLD, THRESHOLDS
 from vlmproprio.stats import DEFAULT_N_BOOT, DEFAULT_N_PERM, DEFAULT_SEED
 
 SCORES_VERSION = 2
-# the final caption's totals: every caption table and comparison reports them after the rubric items
-FINAL_TOTALS = ("final_all_correct", "final_words", "final_hits_per_word")
-CAPTION_METRICS = (
-    "final_object_correct",
-    "final_action_correct",
-    "final_trajectory_mentioned",
-    "final_trajectory_correct",
-    *FINAL_TOTALS,
-)
-PAIRED_METRICS = (
-    *CAPTION_METRICS,
-    # segmentation at the out-of-sample (leave-one-episode-out) threshold; lifts are over random chance
-    "seg_loo_points",
-    "seg_loo_f1_tol1",
-    "seg_loo_f1_tol1_lift",
-    "seg_loo_edit_lift",
-    "seg_loo_f1_at_25_lift",
-)
+# derived from the metric table (evaluation.metrics.METRICS), in its order
+FINAL_TOTALS = final_totals()  # the final caption's totals: caption tables report them after the rubric items
+CAPTION_METRICS = caption_metrics()
+PAIRED_METRICS = paired_metrics()  # the rubric's, then segmentation at the out-of-sample threshold
 
 
 @dataclass(frozen=True)

@@ -13,18 +13,13 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from vlmproprio.evaluation.definitions import CAPTION_METRICS
+from vlmproprio.evaluation.metrics import compare_metrics
 from vlmproprio.report.data import ReportError, RunScores, load_run_scores
 from vlmproprio.report.tables import Table, fmt_diff, fmt_p, fmt_value, label, metric_kind, to_markdown
 
-# the caption metrics the paired statistics use; segmentation also at the fixed threshold, which two runs share
-COMPARE_METRICS = (
-    *CAPTION_METRICS,
-    "seg_points",
-    "seg_f1_tol1",
-    "seg_loo_f1_tol1",
-    "seg_loo_f1_tol1_lift",
-)
+# the metric table's default comparison: the paired caption metrics; segmentation also at the fixed threshold,
+# which two runs share
+COMPARE_METRICS = compare_metrics()
 # aggregate-only columns would go here; the in-sample best threshold, the one there was, is no score any more
 MEAN_ONLY_METRICS: tuple[str, ...] = ()
 

@@ -11,76 +11,24 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 from vlmproprio.conditions import BASELINE
-from vlmproprio.evaluation.definitions import FINAL_TOTALS
+from vlmproprio.evaluation.metrics import BY_NAME, headline_metrics, report_columns
 from vlmproprio.report.data import TASK_LABELS, RunScores
-from vlmproprio.scoring import ITEMS
 
-LABELS = {
-    "n_episodes": "n",
-    "final_object_mentioned": "object mentioned",
-    "final_object_correct": "object correct",
-    "final_action_mentioned": "action mentioned",
-    "final_action_correct": "action correct",
-    "final_trajectory_mentioned": "trajectory mentioned",
-    "final_trajectory_correct": "trajectory correct",
-    "final_all_correct": "all correct",
-    "final_words": "words",
-    "final_hits_per_word": "hits/word",
-    "final_missing": "final missing",
-    "frames_missing": "frames missing",
-    "seg_gt_boundaries": "true boundaries",
-    "seg_points": "points @thr",
-    "seg_f1_tol1": "F1 @thr",
-    "seg_f1_tol1_chance": "chance F1 @thr",
-    "seg_f1_tol1_lift": "F1 lift @thr",
-    "seg_edit": "edit @thr",
-    "seg_loo_threshold": "LOO thr",
-    "seg_loo_points": "points LOO",
-    "seg_loo_f1_tol1": "F1 LOO",
-    "seg_loo_f1_tol1_chance": "chance F1",
-    "seg_loo_f1_tol1_even": "even F1",
-    "seg_loo_f1_tol1_lift": "F1 lift",
-    "seg_loo_edit": "edit LOO",
-    "seg_loo_edit_chance": "chance edit",
-    "seg_loo_edit_lift": "edit lift",
-    "seg_loo_f1_at_25": "F1@25 LOO",
-    "seg_loo_f1_at_25_lift": "F1@25 lift",
-    "seg_loo_f1_at_50": "F1@50 LOO",
-    "seg_groups_f1_tol1": "group-edge F1",
-}
 RATE_SUFFIXES = ("_mentioned", "_correct", "_wrong", "_missing")
-CAPTION_COLUMNS = (
-    "n_episodes",
-    *(f"final_{item}_{what}" for item in ITEMS for what in ("mentioned", "correct")),
-    *FINAL_TOTALS,
-)
-SEGMENTATION_COLUMNS = (
-    "seg_gt_boundaries",
-    "seg_points",
-    "seg_f1_tol1",
-    "seg_f1_tol1_lift",
-    "seg_loo_threshold",
-    "seg_loo_points",
-    "seg_loo_f1_tol1",
-    "seg_loo_f1_tol1_chance",
-    "seg_loo_f1_tol1_even",
-    "seg_loo_f1_tol1_lift",
-    "seg_loo_edit",
-    "seg_loo_edit_lift",
-    "seg_loo_f1_at_25",
-    "seg_groups_f1_tol1",
-    "frames_missing",
-)
+# the aggregate tables' columns and their labels come from the metric table (vlmproprio.evaluation.metrics)
+CAPTION_COLUMNS = report_columns("captions")
+SEGMENTATION_COLUMNS = report_columns("segmentation")
 
 
 # ---------------------------------------------------------------------------------------------- formatting
 
 
 def metric_kind(metric: str) -> str:
-    """rate | count | f1 | ratio | int: decides how a value and a difference of it are printed."""
-    if metric == "n_episodes":
-        return "int"
-    if metric == "frames_missing" or metric.endswith(("_words", "_points", "_boundaries", "_edit", "words")):
+    """rate | count | f1 | ratio | int: decides how a value and a difference of it are printed (the metric
+    table's unit; a column outside the table, e.g. asked for by `compare --metric`, by its name)."""
+    if metric in BY_NAME:
+        return BY_NAME[metric].unit
+    if metric.endswith(("_words", "_points", "_boundaries", "_edit", "words")):
         return "count"
     if "_edit_" in metric:  # edit score chance / lift / even: 0-100 like the score
         return "count"
@@ -149,7 +97,8 @@ def fmt_paired(metric: str, r: dict) -> str:
 
 
 def label(metric: str) -> str:
-    return LABELS.get(metric, metric.removeprefix("final_").replace("_", " "))
+    spec = BY_NAME.get(metric)
+    return spec.label if spec is not None else metric.removeprefix("final_").replace("_", " ")
 
 
 # ---------------------------------------------------------------------------------------------- tables
@@ -414,7 +363,7 @@ def report_tables(s: RunScores) -> list[Table]:
     return [*tables, judged] if judged is not None else tables
 
 
-HEADLINE_METRICS = ("final_trajectory_correct", "final_all_correct", "final_words", "seg_loo_f1_tol1_lift")
+HEADLINE_METRICS = headline_metrics()
 HEADLINE_COMPARISONS = (("both", BASELINE), ("both", "both_shuffled"))
 
 
