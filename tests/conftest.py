@@ -105,7 +105,7 @@ def tiny_model(torch_one_thread):
     root ($VLMPROPRIO_CACHE/models, shared by the xdist workers), where the registry's ``tiny-*`` models look for
     it: a test that runs ``tiny-qwen2-vl`` by name and asks for this fixture finds the build instead of making
     its own."""
-    import fcntl
+    from filelock import FileLock
 
     from vlmproprio.backends.tiny import ensure_tiny_model
 
@@ -113,8 +113,7 @@ def tiny_model(torch_one_thread):
         # the workers start their tiny-model modules at about the same time: one builds, the others wait for it
         # (a race of builds would be safe, but each would cost the ~5 CPU s that sharing saves)
         (SESSION_CACHE / "models").mkdir(exist_ok=True)
-        with (SESSION_CACHE / "models" / f".{family}.lock").open("w") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file is closed
+        with FileLock(SESSION_CACHE / "models" / f".{family}.lock"):
             return ensure_tiny_model(family, SESSION_CACHE)
 
     return build

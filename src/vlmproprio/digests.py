@@ -1,14 +1,14 @@
 """The sha256 of a folder's files, remembered across processes for files that have not changed.
 
-The sentence encoder's revision is the digest of its folder (~92 MB for all-MiniLM-L6-v2): reading and hashing it
-costs ~0.2 s, in every process that scores a run, and a warm replay and score takes only a few seconds. So a digest
+The sentence encoder's revision is the digest of its folder (all-MiniLM-L6-v2's weights): hashing it again in
+every process that scores a run would be a noticeable share of a warm score (perf/machinery.py). So a digest
 is remembered in ``folder-digests.json`` in a folder the caller names (scoring: the embedding cache, whose keys the
 digest is part of) together with the identity of every file it covers (``file_signature``: device, inode, size,
 mtime and ctime in nanoseconds). Writing a file's bytes changes its ctime, which no program can set back
 (``touch``/``os.utime`` set mtime and change the ctime too), and replacing a file changes its inode; so any change
 to a file is another signature, and its folder is hashed again. What this does not see is bytes changed under the
 file system (a disk's bit rot): fixtures, whose bytes are checked for exactly that, are trusted within one process
-only (vlmproprio.episodes).
+only (vlmproprio.episodes.manifest).
 
 As with git's index, a file changed within the same clock tick as its listing could keep its signature: a
 listing with a file changed less than ``SETTLED_NS`` before it is never remembered on disk. A missing,

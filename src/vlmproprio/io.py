@@ -138,12 +138,11 @@ def atomic_write_texts(files: Mapping[Path, str]) -> dict[Path, str]:
 def text_computed_once(lock: Path, done: Path, compute: Callable[[], str]) -> str:
     """The text ``compute()`` returns, computed by the first process to take an exclusive lock on ``lock`` and
     kept in ``done``; a process that comes later waits for the lock and reads ``done``. For work several
-    processes of one session (pytest-xdist workers) need once; POSIX only (``fcntl``). A failure writes
-    nothing: the next process tries again and fails the same way."""
-    import fcntl
+    processes of one session (pytest-xdist workers) need once. A failure writes nothing: the next process tries
+    again and fails the same way."""
+    from filelock import FileLock
 
-    with Path(lock).open("w") as held:
-        fcntl.flock(held, fcntl.LOCK_EX)  # released when the file is closed
+    with FileLock(lock):
         if not done.is_file():
             atomic_write_text(done, compute())
         return done.read_text(encoding="utf-8")

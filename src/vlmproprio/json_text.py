@@ -1,12 +1,13 @@
 """JSON text with one space of indent per level, exactly as ``json.dumps(obj, indent=1, ensure_ascii=False)``
-writes it, several times faster.
+writes it, mostly by the C encoder; the score files are written with it (several MB per model, where it pays:
+perf/machinery.py).
 
-With ``indent`` the standard library writes every value through its pure-Python encoder; score files and
-transcripts are mostly objects and arrays of plain scalars (a row, a trace, an audit span), and such a container
+With ``indent`` the standard library writes every value through its pure-Python encoder; score files are mostly
+objects and arrays of plain scalars (a row, a trace, an audit span), and such a container
 is written here by one call of the C encoder, whose item separator carries the newline and the indent.
 Nested containers are laid out here the way ``json.dumps`` lays them out. Anything else than dicts with string
 keys, lists, tuples, str, int, float, bool and None (subclasses included: numpy scalars, enums) raises
-``NotPlain``, and the caller writes it with ``json.dumps`` as before.
+``NotPlain``, and the caller writes it with ``json.dumps``.
 """
 
 from __future__ import annotations

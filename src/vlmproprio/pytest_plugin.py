@@ -185,13 +185,8 @@ class BenchSession:
 def _shared_run_root(config: pytest.Config, tmp_path_factory: pytest.TempPathFactory) -> Path | None:
     """Under pytest-xdist, one temporary run folder for all the session's workers (their base temp folders'
     common parent), so that a model is run and scored once per session, not once per worker that has benchmark
-    tests (test_benchmark.py and test_claims.py land on different workers); None outside xdist, or where there
-    is no ``fcntl`` to lock with."""
+    tests (test_benchmark.py and test_claims.py land on different workers); None outside xdist."""
     if not hasattr(config, "workerinput"):  # what pytest-xdist gives a worker's config
-        return None
-    try:
-        import fcntl  # noqa: F401
-    except ImportError:
         return None
     root = tmp_path_factory.getbasetemp().parent / "vlmproprio-bench"
     root.mkdir(parents=True, exist_ok=True)

@@ -15,7 +15,6 @@ from typing import Literal
 
 from vlmproprio.errors import VlmproprioError
 from vlmproprio.io import atomic_write_text, atomic_write_texts, load_json
-from vlmproprio.json_text import NotPlain, dumps_indented
 
 ParseStatus = Literal["ok", "recovered", "missing"]
 PARSE_STATUSES: tuple[str, ...] = ("ok", "recovered", "missing")
@@ -126,12 +125,8 @@ def transcript_path(run_dir: Path | str, model: str, episode_id: str, condition:
 
 
 def transcript_text(t: Transcript) -> str:
-    """The transcript file's text: ``json.dumps(indent=1, ensure_ascii=False)``, mostly by the C encoder."""
-    d = t.to_dict()
-    try:
-        return dumps_indented(d) + "\n"
-    except NotPlain:
-        return json.dumps(d, indent=1, ensure_ascii=False) + "\n"
+    """The transcript file's text: one space of indent per level, non-ASCII text as it is."""
+    return json.dumps(t.to_dict(), indent=1, ensure_ascii=False) + "\n"
 
 
 def write_transcript(run_dir: Path, t: Transcript) -> Path:
