@@ -25,7 +25,7 @@ STAGES: list[tuple[str, ...]] = [
     ("answering",),
     ("transcripts", "parsing"),
     ("pipeline",),
-    ("runner", "show"),
+    ("runner", "show", "run_folder"),
     ("scoring", "embeddings", "segmentation"),
     ("stats", "power"),
     ("verdicts",),

@@ -9,10 +9,11 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+# the scores' version lives with the stamp that records it; importable from here too, beside the metric lists
+from vlmproprio.run_folder import SCORES_VERSION as SCORES_VERSION
 from vlmproprio.segmentation import DEFAULT_THRESHOLD, THRESHOLDS
 from vlmproprio.stats import DEFAULT_N_BOOT, DEFAULT_N_PERM, DEFAULT_SEED
 
-SCORES_VERSION = 2
 # the final caption's totals: every caption table and comparison reports them after the rubric items
 FINAL_TOTALS = ("final_all_correct", "final_words", "final_hits_per_word")
 CAPTION_METRICS = (
