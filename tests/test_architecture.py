@@ -29,7 +29,7 @@ STAGES: list[tuple[str, ...]] = [
     ("scoring", "embeddings", "segmentation"),
     ("stats", "power"),
     ("verdicts",),
-    ("evaluation", "frame_table", "sidecars"),  # evaluation/: its own order, EVALUATION_ORDER below
+    ("evaluation", "sidecars"),  # evaluation/: its own order, EVALUATION_ORDER below
     ("report",),
     ("dataset_export", "inspect"),
     ("bench",),
@@ -101,6 +101,7 @@ EVALUATION_ORDER = (
     "controls",
     "meta",
     "judge",
+    "frame_table",
     "generations",
     "run",
 )

