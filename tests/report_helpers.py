@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 
 from scoring_helpers import fake_spec, prefill_embeddings, write_synthetic_run
-from vlmproprio.transcripts import FrameCaption, SceneCaption, read_transcript, transcript_filename, write_transcript
+from vlmproprio.locations import transcript_filename
+from vlmproprio.transcripts import FrameCaption, SceneCaption, read_transcript, write_transcript
 
 CONDS = ("none", "ee", "both", "both_shuffled")
 # would change the page's title if a browser ran it

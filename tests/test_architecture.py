@@ -25,11 +25,11 @@ STAGES: list[tuple[str, ...]] = [
     ("answering",),
     ("transcripts", "parsing"),
     ("pipeline",),
-    ("runner", "show"),
+    ("runner", "show", "run_folder"),
     ("scoring", "embeddings", "segmentation"),
     ("stats", "power"),
     ("verdicts",),
-    ("evaluation", "frame_table", "sidecars"),  # evaluation/: its own order, EVALUATION_ORDER below
+    ("evaluation", "sidecars"),  # evaluation/: its own order, EVALUATION_ORDER below
     ("report",),
     ("dataset_export", "inspect"),
     ("bench",),
@@ -102,6 +102,7 @@ EVALUATION_ORDER = (
     "controls",
     "meta",
     "judge",
+    "frame_table",
     "generations",
     "run",
 )

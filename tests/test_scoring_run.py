@@ -136,6 +136,21 @@ def test_written_files_are_valid_json_and_csv(tables, small_run):
     assert json.loads((out / "meta.json").read_text())["scores_version"] == 2
 
 
+def test_score_run_writes_the_per_frame_table_into_its_stamped_generation(tables, small_run):
+    """Every caller of score_run (the score command, the benchmark, the inspect task) gets frames.csv."""
+    import csv
+
+    from vlmproprio.evaluation import check_scores
+    from vlmproprio.evaluation.frame_table import COLUMNS
+
+    run, _ = small_run
+    with (run / "scores" / "frames.csv").open(newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert tuple(rows[0]) == COLUMNS
+    assert len(rows) == sum(r["n_frames"] for r in tables.rows)
+    assert "frames.csv" in check_scores(run, ["frames.csv"])["files"]  # one generation with the score files
+
+
 def _score_files(run: Path) -> dict[str, bytes]:
     return {p.name: p.read_bytes() for p in sorted((run / "scores").iterdir()) if p.name != "timing.json"}
 

@@ -9,6 +9,10 @@ Caches (model answers in the folder's ``cache.db``, sentence embeddings and the 
 ``power/``): ``--cache-dir DIR`` where a command takes it, else
 ``$VLMPROPRIO_CACHE``, else the user cache directory (``platformdirs``: ``~/.cache/vlmproprio`` on Linux). One
 variable and one option for all of them.
+
+Inside a run folder: ``transcripts/<model slug>/<episode>__<condition>.json``, one file per cell
+(``transcript_path``), and which of them the run's ``run.json`` says it must hold (``recorded_transcripts``).
+A run, cache or report folder never lies inside the fixtures, nor the fixtures inside it (``refuse_nesting``).
 """
 
 from __future__ import annotations
@@ -84,3 +88,52 @@ def cache_root(explicit: Path | str | None = None) -> Path:
     import platformdirs
 
     return Path(platformdirs.user_cache_dir(APP_NAME, appauthor=False))
+
+
+# ---------------------------------------------------------------------------------------------- run folders
+
+
+def cell_name(episode_id: str, condition: str) -> str:
+    """One (episode, condition) cell of a model: the stem of its transcript file."""
+    return f"{episode_id}__{condition}"
+
+
+def transcript_filename(episode_id: str, condition: str) -> str:
+    return f"{cell_name(episode_id, condition)}.json"
+
+
+def transcript_path(run_dir: Path | str, model: str, episode_id: str, condition: str) -> Path:
+    return Path(run_dir) / "transcripts" / model / transcript_filename(episode_id, condition)
+
+
+def recorded_transcripts(run_dir: Path, run_file: dict) -> list[Path] | None:
+    """The transcript files the run recorded in run.json must have (model slug x episode x condition), or None
+    for a run.json that does not say (written by hand or by another tool)."""
+    episodes, conditions = run_file.get("episodes"), run_file.get("conditions")
+    models = [m.get("slug") for m in run_file.get("models", []) if isinstance(m, dict)]
+    if not (isinstance(episodes, list) and isinstance(conditions, list) and models and all(models)):
+        return None
+    root = Path(run_dir) / "transcripts"
+    return [root / m / transcript_filename(e, c) for m in models for e in episodes for c in conditions]
+
+
+def is_inside(a: Path, b: Path) -> bool:
+    """Whether folder ``a`` is ``b`` or lies below it (both resolved)."""
+    a, b = a.resolve(), b.resolve()
+    return a == b or b in a.parents
+
+
+def refuse_nesting(fixtures: Path, folders: dict[str, Path | None]) -> None:
+    """Refuse an output or cache folder (``folders``: option name -> folder) inside the fixtures, where the
+    manifest would see extra files and every later run fail, and the fixtures inside one of them."""
+    fixtures = Path(fixtures)
+    for flag, folder in folders.items():
+        if folder is None:
+            continue
+        if is_inside(Path(folder), fixtures):
+            raise UsageError(
+                f"{flag} {folder} is inside the fixture folder {fixtures}; fixtures hold frozen data only "
+                f"(its manifest would see new files): choose a {flag} outside it"
+            )
+        if is_inside(fixtures, Path(folder)):
+            raise UsageError(f"the fixture folder {fixtures} is inside {flag} {folder}; choose a {flag} beside it")

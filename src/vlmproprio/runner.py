@@ -30,6 +30,7 @@ from vlmproprio.conditions import Condition
 from vlmproprio.episodes import PIXEL_LEDGER_FILE, Episode, load_episodes, pixel_ledger
 from vlmproprio.errors import UsageError
 from vlmproprio.io import atomic_write_text, atomic_write_texts
+from vlmproprio.locations import refuse_nesting
 from vlmproprio.models import ModelRef, resolve_model
 from vlmproprio.parallel import map_groups, resolve_workers
 from vlmproprio.pipeline import PipelineSettings, answer_chunk, calls_per_episode, caption_episodes, episode_images
@@ -267,28 +268,6 @@ def read_run_file(run_dir: Path) -> dict | None:
     return data
 
 
-def is_inside(a: Path, b: Path) -> bool:
-    """Whether folder ``a`` is ``b`` or lies below it (both resolved)."""
-    a, b = a.resolve(), b.resolve()
-    return a == b or b in a.parents
-
-
-def refuse_nesting(fixtures: Path, folders: dict[str, Path | None]) -> None:
-    """Refuse an output or cache folder (``folders``: option name -> folder) inside the fixtures, where the
-    manifest would see extra files and every later run fail, and the fixtures inside one of them."""
-    fixtures = Path(fixtures)
-    for flag, folder in folders.items():
-        if folder is None:
-            continue
-        if is_inside(Path(folder), fixtures):
-            raise UsageError(
-                f"{flag} {folder} is inside the fixture folder {fixtures}; fixtures hold frozen data only "
-                f"(its manifest would see new files): choose a {flag} outside it"
-            )
-        if is_inside(fixtures, Path(folder)):
-            raise UsageError(f"the fixture folder {fixtures} is inside {flag} {folder}; choose a {flag} beside it")
-
-
 def _differences(old: dict, new: dict) -> list[str]:
     keys = sorted(set(old) | set(new))
     return [f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in keys if old.get(k) != new.get(k)]
@@ -330,19 +309,6 @@ def check_run_folder(plan: RunPlan, episodes: list[Episode]) -> list[dict]:
             diff = "; ".join(_differences(m["pipeline"], plan.pipeline_for(model).to_dict()))
             raise UsageError(f"{where}: model {model.name!r} ran there with other settings ({diff}); {fix}")
     return earlier
-
-
-def recorded_transcripts(run_dir: Path, run_file: dict) -> list[Path] | None:
-    """The transcript files the run recorded in run.json must have (model slug x episode x condition), or None
-    for a run.json that does not say (written by hand or by another tool)."""
-    from vlmproprio.transcripts import transcript_filename
-
-    episodes, conditions = run_file.get("episodes"), run_file.get("conditions")
-    models = [m.get("slug") for m in run_file.get("models", []) if isinstance(m, dict)]
-    if not (isinstance(episodes, list) and isinstance(conditions, list) and models and all(models)):
-        return None
-    root = Path(run_dir) / "transcripts"
-    return [root / m / transcript_filename(e, c) for m in models for e in episodes for c in conditions]
 
 
 def run(plan: RunPlan) -> list[ModelRun]:

@@ -9,15 +9,19 @@ Which captions: those of a replay run of the model over every episode and condit
 benchmark's settings (what ``pytest benchmark/`` and ``vlmproprio run --model MODEL --mode replay`` score), or those of
 given run folders. The ``reference`` captioner has no cassette (it is computed, deterministically, from the
 states), but its captions are as fixed as a cassette's, so it gets a sidecar the same way.
+
+After a run that recorded answers, ``embed_recorded`` adds their new captions to each recorded model's sidecar
+(what ``vlmproprio run --model MODEL --mode record`` does once the run is written).
 """
 
 from __future__ import annotations
 
 import logging
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from vlmproprio.embeddings import (
     CachedEmbedder,
@@ -25,6 +29,8 @@ from vlmproprio.embeddings import (
     EmbeddingStore,
     EncoderSpec,
     default_embedding_dir,
+    default_encoder_installed,
+    encoder_spec,
     merge_sections,
     read_sidecar,
     sidecar_path,
@@ -36,6 +42,9 @@ from vlmproprio.errors import VlmproprioError
 from vlmproprio.evaluation import frame_texts
 from vlmproprio.models import ModelRef, resolve_model
 from vlmproprio.transcripts import read_transcripts, transcript_path
+
+if TYPE_CHECKING:
+    from vlmproprio.runner import ModelRun
 
 log = logging.getLogger(__name__)
 
@@ -130,3 +139,19 @@ def build_sidecar(
     write_sidecar(path, slug, sections.values(), source)
     manifest = register_fixture_file(path)
     return SidecarBuild(path, len(section.digests), embedder.stats.computed, manifest)
+
+
+def embed_recorded(
+    runs: Iterable[ModelRun], run_dir: Path, fixtures: Path
+) -> Iterator[tuple[str, SidecarBuild | None]]:
+    """After a run that recorded answers: add each recorded model's new captions to its sidecar, yielding (model
+    name, build) as each is done; the build is None when the encoder is not installed (the sidecar is left as it
+    was). Models that replayed or ran live are skipped: their cassette did not change."""
+    for r in runs:
+        if r.mode != "record":
+            continue
+        if not default_encoder_installed():
+            yield r.name, None
+            continue
+        texts = run_caption_texts(run_dir, fixtures, r.slug)
+        yield r.name, build_sidecar(r.name, fixtures, encoder_spec(), texts, merge=True)

@@ -15,6 +15,7 @@ from typing import Literal
 
 from vlmproprio.errors import VlmproprioError
 from vlmproprio.io import atomic_write_text, atomic_write_texts, load_json
+from vlmproprio.locations import cell_name, transcript_path
 
 ParseStatus = Literal["ok", "recovered", "missing"]
 PARSE_STATUSES: tuple[str, ...] = ("ok", "recovered", "missing")
@@ -105,23 +106,10 @@ class Transcript:
         return cls(**d)
 
 
-def cell_name(episode_id: str, condition: str) -> str:
-    """One (episode, condition) cell of a model: the stem of its transcript file."""
-    return f"{episode_id}__{condition}"
-
-
 def cell_key(model: str, episode_id: str, condition: str) -> str:
     """One (model, episode, condition) cell: the key of its entry in scores/audit.json and traces.json, and its
     transcript's path below RUN_DIR/transcripts/ without the suffix."""
     return f"{model}/{cell_name(episode_id, condition)}"
-
-
-def transcript_filename(episode_id: str, condition: str) -> str:
-    return f"{cell_name(episode_id, condition)}.json"
-
-
-def transcript_path(run_dir: Path | str, model: str, episode_id: str, condition: str) -> Path:
-    return Path(run_dir) / "transcripts" / model / transcript_filename(episode_id, condition)
 
 
 def transcript_text(t: Transcript) -> str:

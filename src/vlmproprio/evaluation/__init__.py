@@ -23,6 +23,7 @@ boundaries at the edges of the pipeline's frame groups. The in-sample best thres
 exists only in the sweep tables (and the report's sweep plot, marked optimistic).
 * ``audit.json``: per caption, every matched span with its verdict, and what was expected;
 * ``traces.json``: every similarity trace with its predicted and true boundaries;
+* ``frames.csv``: one row per (model, episode, condition, frame) for pandas, R or a spreadsheet (frame_table);
 * ``meta.json``: encoder name, revision and key, lexicon versions and hashes, settings;
 * ``timing.json``: wall times and cache counts -- the only file that differs between repeated runs;
 * ``stamp.json``: the digest of exactly the transcripts, run configuration, ground truth, settings and code
@@ -38,9 +39,11 @@ timing.json is byte-identical across runs, processes and machines.
 3. cells.score_cells -> CellScores: per cell the rubric, the trace, the sweep, the audit;
 4. chance.add_segmentation_baselines -> Baselines: out-of-sample thresholds (out_of_sample), chance, lifts;
 5. tables.aggregate_tables -> Aggregates; controls.control_correlations; statistics.paired_statistics -> Statistics;
-6. meta.score_meta, the optional judge (judge.judge_table), then generations.write_score_tables.
+6. meta.score_meta, the optional judge (judge.judge_table), the per-frame table (frame_table), then
+   generations: the score files and frames.csv swapped in as one stamped generation.
 
-Every name other modules use is importable from ``vlmproprio.evaluation`` itself.
+Every name other modules use is importable from ``vlmproprio.evaluation`` itself, those of the run folder it reads
+and stamps (vlmproprio.run_folder) included.
 """
 
 from vlmproprio.evaluation.captions import EmbeddedCaptions, align_frames, embed_captions
@@ -55,29 +58,14 @@ from vlmproprio.evaluation.definitions import (
     ScoreSettings,
 )
 from vlmproprio.evaluation.formats import dumps_csv, dumps_json
-from vlmproprio.evaluation.generations import (
-    GENERATION_PREFIX,
-    STAMP_FILE,
-    StaleScoresError,
-    check_scores,
-    code_version,
-    run_configuration,
-    score_inputs,
-    swap_in_generation,
-    transcripts_digest,
-    write_score_tables,
-)
+from vlmproprio.evaluation.generations import GENERATION_PREFIX, score_inputs, swap_in_generation, write_score_tables
 from vlmproprio.evaluation.inputs import (
     DEFAULT_GROUP_SIZE,
     RunInputs,
-    ScoreRunError,
     condition_order,
     frame_group_size,
     frame_texts,
     load_run_inputs,
-    read_run_manifest,
-    resolve_fixtures,
-    run_transcript_files,
 )
 from vlmproprio.evaluation.judge import judge_table
 from vlmproprio.evaluation.meta import MISSING_POLICY, score_meta
@@ -85,6 +73,18 @@ from vlmproprio.evaluation.out_of_sample import LOO_RULE, SEG_COLUMNS, add_out_o
 from vlmproprio.evaluation.run import score_run
 from vlmproprio.evaluation.statistics import Statistics, default_comparisons, paired_statistics, paired_table
 from vlmproprio.evaluation.tables import ID_COLUMNS, Aggregates, ScoreTables, aggregate_tables
+from vlmproprio.run_folder import (
+    STAMP_FILE,
+    ScoreRunError,
+    StaleScoresError,
+    check_scores,
+    code_version,
+    read_run_manifest,
+    resolve_fixtures,
+    run_configuration,
+    run_transcript_files,
+    transcripts_digest,
+)
 
 __all__ = [
     "CAPTION_METRICS",

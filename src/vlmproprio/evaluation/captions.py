@@ -54,7 +54,7 @@ def embed_captions(
         resolve_encoder,
         sidecar_vectors,
     )
-    from vlmproprio.runner import refuse_nesting
+    from vlmproprio.locations import refuse_nesting
 
     if sidecars is None:
         stored = load_sidecars(inputs.fixtures / "responses", {t.model for t in inputs.transcripts})

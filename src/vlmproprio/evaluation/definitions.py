@@ -9,11 +9,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+# the scores' version lives with the stamp that records it; importable from here too, beside the metric lists
 from vlmproprio.evaluation.metrics import caption_metrics, final_totals, paired_metrics
+from vlmproprio.run_folder import SCORES_VERSION as SCORES_VERSION
 from vlmproprio.segmentation import DEFAULT_THRESHOLD, THRESHOLDS
 from vlmproprio.stats import DEFAULT_N_BOOT, DEFAULT_N_PERM, DEFAULT_SEED
 
-SCORES_VERSION = 2
 # derived from the metric table (evaluation.metrics.METRICS), in its order
 FINAL_TOTALS = final_totals()  # the final caption's totals: caption tables report them after the rubric items
 CAPTION_METRICS = caption_metrics()

@@ -1,27 +1,17 @@
-"""Write the score tables as one generation of RUN_DIR/scores/, stamped with what they were computed from, and
-check that a generation still matches its run."""
+"""Write the score tables as one generation of RUN_DIR/scores/, stamped with what they were computed from
+(the stamp's digests, and the check that a generation still matches its run, are vlmproprio.run_folder's)."""
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
 
 from vlmproprio.errors import VlmproprioError
-from vlmproprio.evaluation.definitions import SCORES_VERSION
 from vlmproprio.evaluation.formats import dumps_csv, dumps_json
-from vlmproprio.evaluation.inputs import ScoreRunError, read_run_manifest, run_transcript_files
 from vlmproprio.evaluation.tables import ScoreTables
-from vlmproprio.io import (
-    WriteError,
-    atomic_write_text,
-    atomic_write_texts,
-    load_json,
-    load_required_json,
-    sha256_file,
-    writing,
-)
+from vlmproprio.io import WriteError, atomic_write_text, atomic_write_texts, writing
 from vlmproprio.parallel import map_groups
+from vlmproprio.run_folder import STAMP_FILE, code_version, json_digest, run_configuration, transcripts_digest
 
 # file name -> (table, format), in the order the files are written
 SCORE_FILES: dict[str, tuple[str, str]] = {
@@ -78,49 +68,9 @@ def write_score_tables(
 # stamp.json (the digest of exactly the transcripts, run configuration, fixtures' ground truth, settings and
 # code version the scores come from, and the sha256 of each score file); the folder then replaces scores/ by
 # rename. A reader sees the old generation, the new one, or none -- never a mix -- and the report refuses
-# scores whose stamp no longer matches the run (``check_scores``).
+# scores whose stamp no longer matches the run (``run_folder.check_scores``).
 
-STAMP_FILE = "stamp.json"
 GENERATION_PREFIX = ".scores-"  # .scores-new-*, .scores-old-*: removed by the next score of the run
-
-
-class StaleScoresError(ScoreRunError):
-    """Scores that do not match the run they sit in; the message says how to re-score."""
-
-
-def _digest(obj) -> str:
-    import hashlib
-
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, separators=(",", ":")).encode("utf-8")).hexdigest()
-
-
-def run_configuration(manifest: dict) -> dict:
-    """The part of run.json that decides what the transcripts are (not status, times, counts or versions)."""
-    models = [
-        {k: m.get(k) for k in ("name", "slug", "pipeline")} for m in manifest.get("models", []) if isinstance(m, dict)
-    ]
-    return {"episodes": manifest.get("episodes"), "conditions": manifest.get("conditions"), "models": models}
-
-
-def code_version() -> dict:
-    from vlmproprio import __version__
-
-    return {"vlmproprio": __version__, "scores_version": SCORES_VERSION}
-
-
-def transcripts_digest(run_dir: Path, files: Sequence[Path], documents: Sequence[dict] | None = None) -> str:
-    """The digest of what the transcripts say, leaving out how it was obtained (``requests``: cache hits and
-    latencies; ``timing``), which a resumed or repeated run changes without changing a word. ``documents``:
-    the files' JSON as already read (the transcripts a score computed from), instead of reading them again."""
-    said = {}
-    if documents is not None and len(documents) != len(files):
-        raise ValueError(f"{len(documents)} transcript documents for {len(files)} files")
-    for i, p in enumerate(files):
-        d = documents[i] if documents is not None else load_json(p, error=ScoreRunError)
-        said[p.relative_to(run_dir).as_posix()] = (
-            {k: v for k, v in d.items() if k not in ("requests", "timing")} if isinstance(d, dict) else d
-        )
-    return _digest(said)
 
 
 def score_inputs(
@@ -144,13 +94,13 @@ def score_inputs(
         truth = {}
     parts = {
         "transcripts": transcripts_digest(run_dir, files, documents),
-        "run_configuration": _digest(run_configuration(manifest)),
-        "ground_truth": _digest(truth),
-        "settings": _digest(settings),
-        "lexicons": _digest(lexicons),
+        "run_configuration": json_digest(run_configuration(manifest)),
+        "ground_truth": json_digest(truth),
+        "settings": json_digest(settings),
+        "lexicons": json_digest(lexicons),
         "code": code_version(),
     }
-    return {"stamp": _digest(parts), "inputs": parts}
+    return {"stamp": json_digest(parts), "inputs": parts}
 
 
 def _remove_leftovers(run_dir: Path) -> None:
@@ -201,42 +151,3 @@ def swap_in_generation(run_dir: Path, files: dict[str, str], inputs: dict) -> li
         raise
     shutil.rmtree(old, ignore_errors=True)
     return [out / name for name in files]
-
-
-def check_scores(run_dir: str | Path, names: Sequence[str] = ()) -> dict:
-    """The stamp of RUN_DIR/scores/ after checking it still matches the run: the same transcripts, run
-    configuration and code version, and score files ``names`` (default: all) as they were written.
-    StaleScoresError, naming the command that fixes it, otherwise."""
-    run_dir = Path(run_dir)
-    out = run_dir / "scores"
-    fix = f"re-score the run: `vlmproprio score {run_dir}`"
-    stamp = load_required_json(
-        out / STAMP_FILE,
-        f"{out}: scores are out of date: no {STAMP_FILE} (scores from an older version or incomplete); {fix}",
-        error=StaleScoresError,
-    )
-    if not isinstance(stamp, dict) or not isinstance(stamp.get("inputs"), dict):
-        raise StaleScoresError(f"{out / STAMP_FILE}: scores are out of date: not a score stamp; {fix}")
-    recorded, files = stamp["inputs"], stamp.get("files", {})
-    if recorded.get("code") != code_version():
-        raise StaleScoresError(
-            f"{out}: scores are out of date: scored by {recorded.get('code')}, this is {code_version()}; {fix}"
-        )
-    manifest = read_run_manifest(run_dir)
-    try:
-        current = run_transcript_files(run_dir, manifest)
-    except ScoreRunError as exc:
-        raise StaleScoresError(f"{out}: scores are out of date: the run no longer matches them ({exc})") from None
-    if recorded.get("run_configuration") != _digest(run_configuration(manifest)):
-        raise StaleScoresError(
-            f"{out}: scores are out of date: run.json records another configuration than the one scored; {fix}"
-        )
-    if recorded.get("transcripts") != transcripts_digest(run_dir, current):
-        raise StaleScoresError(f"{out}: scores are out of date: transcripts changed since the run was scored; {fix}")
-    for name in names or list(files):
-        path = out / name
-        if name not in files or not path.is_file() or sha256_file(path) != files[name]:
-            raise StaleScoresError(
-                f"{path}: scores are out of date: not the file of this generation of scores (changed or mixed); {fix}"
-            )
-    return stamp

@@ -8,67 +8,11 @@ from pathlib import Path
 
 from vlmproprio.conditions import CONTROLS, PAPER_CONDITIONS
 from vlmproprio.episodes import Episode, load_episodes
-from vlmproprio.errors import VlmproprioError
-from vlmproprio.io import load_json
+from vlmproprio.run_folder import ScoreRunError, read_run_manifest, resolve_fixtures, run_transcript_files
 from vlmproprio.segmentation import caption_present
 from vlmproprio.transcripts import Transcript, read_transcript_document
 
 DEFAULT_GROUP_SIZE = 5
-
-
-class ScoreRunError(VlmproprioError):
-    """A run directory that cannot be scored; the message names the file and what to do."""
-
-
-def read_run_manifest(run_dir: Path) -> dict:
-    path = run_dir / "run.json"
-    if not path.is_file():
-        return {}
-    data = load_json(path, error=ScoreRunError)
-    if not isinstance(data, dict):
-        raise ScoreRunError(f"{path}: run manifest must be a JSON object")
-    return data
-
-
-def resolve_fixtures(run_dir: Path, manifest: dict, fixtures: str | Path | None) -> Path:
-    if fixtures is not None:
-        root = Path(fixtures)
-    elif manifest.get("fixtures"):
-        root = Path(manifest["fixtures"])
-        if not root.is_absolute() and not root.is_dir() and (run_dir / root).is_dir():
-            root = run_dir / root
-    else:
-        raise ScoreRunError(f"{run_dir / 'run.json'}: no 'fixtures' entry; pass the fixture folder (--fixtures)")
-    if not root.is_dir():
-        raise ScoreRunError(f"fixture folder {root} not found (from {run_dir / 'run.json'}); pass --fixtures")
-    return root
-
-
-def run_transcript_files(run_dir: Path, manifest: dict) -> list[Path]:
-    """Exactly the transcripts of the configuration recorded in run.json; a one-line error when some are
-    missing (an unfinished run) or when others lie there (left by an older run). Without run.json, or with one
-    that lists no models: every transcript in the folder."""
-    from vlmproprio.runner import recorded_transcripts
-
-    root = run_dir / "transcripts"
-    on_disk = sorted(root.glob("*/*.json"))
-    expected = recorded_transcripts(run_dir, manifest)
-    if expected is None:
-        return on_disk
-    missing = [p for p in expected if not p.is_file()]
-    if missing:
-        raise ScoreRunError(
-            f"{run_dir}: the run recorded in run.json is not finished ({len(missing)} of {len(expected)} "
-            f"transcripts missing, e.g. {missing[0].relative_to(run_dir)}); finish it by running the same "
-            "`vlmproprio run --model MODEL --out RUN_DIR` command again (answers already made are cached)"
-        )
-    extra = sorted(set(on_disk) - set(expected))
-    if extra:
-        raise ScoreRunError(
-            f"{extra[0]}: not part of the run recorded in {run_dir / 'run.json'} ({len(extra)} such transcript(s), "
-            "left by another run); move them out of the run folder, or run into a new --out"
-        )
-    return expected
 
 
 def condition_order(conditions: Sequence[str]) -> list[str]:

@@ -11,7 +11,8 @@ from vlmproprio.evaluation.cells import score_cells
 from vlmproprio.evaluation.chance import Baselines, add_segmentation_baselines
 from vlmproprio.evaluation.controls import control_correlations
 from vlmproprio.evaluation.definitions import ScoreSettings
-from vlmproprio.evaluation.generations import score_inputs, write_score_tables
+from vlmproprio.evaluation.frame_table import FRAMES_CSV, frame_table_text
+from vlmproprio.evaluation.generations import score_file_texts, score_inputs, swap_in_generation
 from vlmproprio.evaluation.inputs import RunInputs, load_run_inputs
 from vlmproprio.evaluation.judge import judge_table
 from vlmproprio.evaluation.meta import score_meta
@@ -63,7 +64,8 @@ def _timing(seconds: dict[str, float], baselines: Baselines, captions: EmbeddedC
 
 
 def _write(inputs: RunInputs, tables: ScoreTables, workers: int) -> None:
-    """Write the tables as a new generation of RUN_DIR/scores/, stamped with the digests of their inputs."""
+    """Write the tables and the per-frame table as a new generation of RUN_DIR/scores/, stamped with the digests
+    of their inputs."""
     meta, judged = tables.meta, tables.judge
     score_settings = {k: meta[k] for k in ("encoder", "segmentation", "stats")} | {
         "judge": judged["backend"] if judged else None
@@ -78,7 +80,9 @@ def _write(inputs: RunInputs, tables: ScoreTables, workers: int) -> None:
         meta["lexicons"],
         inputs.transcript_documents if len(inputs.transcript_documents) == len(inputs.transcript_files) else None,
     )
-    write_score_tables(inputs.run_dir, tables, stamp, workers)
+    # the per-frame table goes into the same stamped generation: every caller of score_run gets it
+    files = score_file_texts(tables, workers) | {FRAMES_CSV: frame_table_text(tables, inputs.transcripts)}
+    swap_in_generation(inputs.run_dir, files, stamp)
 
 
 def score_run(
@@ -102,7 +106,8 @@ def score_run(
     claims: str | Path | None = None,
     workers: int | None = None,
 ) -> ScoreTables:
-    """Score every transcript of a run and (by default) write RUN_DIR/scores/.
+    """Score every transcript of a run and (by default) write RUN_DIR/scores/, the per-frame table frames.csv
+    (frame_table) included.
 
     ``encoder`` is an ``embeddings.EncoderSpec`` (default: the packaged all-MiniLM-L6-v2); embeddings are cached
     in ``embedding_cache`` (default <cache root>/embeddings, shared by every run: its entries are keyed

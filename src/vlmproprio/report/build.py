@@ -183,7 +183,7 @@ def write_plots(
 
 def _load_episodes(s: RunScores, fixtures: str | Path | None, notices: list[str]) -> dict[str, Episode]:
     from vlmproprio.episodes import load_episodes
-    from vlmproprio.evaluation import ScoreRunError, resolve_fixtures
+    from vlmproprio.run_folder import ScoreRunError, resolve_fixtures
 
     try:
         root = resolve_fixtures(s.run_dir, s.manifest, fixtures)
@@ -240,7 +240,7 @@ def write_report(
     out = Path(out) if out is not None else Path(run_dir) / REPORT_DIR
     root = fixtures if fixtures is not None else s.manifest.get("fixtures")
     if root and Path(root).is_dir():
-        from vlmproprio.runner import refuse_nesting
+        from vlmproprio.locations import refuse_nesting
 
         refuse_nesting(Path(root), {"--out": out})
     make_dirs(out)

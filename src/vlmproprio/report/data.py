@@ -103,7 +103,7 @@ def _read_json(path: Path, kind: type):
 
 def _check_generation(run_dir: Path, d: Path) -> None:
     if (d / "meta.json").is_file():  # else the missing-file error below says to score the run
-        from vlmproprio.evaluation import StaleScoresError, check_scores
+        from vlmproprio.run_folder import StaleScoresError, check_scores
 
         try:  # one generation, stamped with what it was computed from: refuse stale or mixed scores
             check_scores(run_dir, [f"{name}.json" for name in SCORE_FILES])

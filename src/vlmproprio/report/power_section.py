@@ -81,7 +81,7 @@ def power_cache(cache_root: str | Path | None, fixtures: str | Path | None) -> P
     """``<cache root>/power`` (default root: vlmproprio.locations), None when it would lie in the fixture folder
     (where a new file breaks the manifest): the analysis is then computed, not kept."""
     from vlmproprio.locations import cache_root as default_root
-    from vlmproprio.runner import is_inside
+    from vlmproprio.locations import is_inside
 
     folder = (Path(cache_root) if cache_root is not None else default_root()) / power.POWER_CACHE_DIR
     return None if fixtures and Path(fixtures).is_dir() and is_inside(folder, Path(fixtures)) else folder

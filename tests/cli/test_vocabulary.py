@@ -12,7 +12,7 @@ from vlmproprio.errors import UsageError
 from vlmproprio.locations import cache_root, resolve_fixtures
 from vlmproprio.options import DEFAULT_MODE, split_list
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 FIXTURES = REPO / "fixtures"
 
 

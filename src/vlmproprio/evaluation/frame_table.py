@@ -4,18 +4,19 @@ One row per (model, episode, condition, frame): the frame's true phase, its capt
 similarity of its caption to the next frame's (the segmentation trace), whether a boundary is predicted there at
 the run's threshold and whether there truly is one, and the rubric verdicts of the scene caption covering the
 frame and of the episode's final caption (``correct``, ``wrong``, ``mentioned`` or ``none`` per item).
-Columns are listed in ``COLUMNS``; the schema is documented in docs/results.md.
+Columns are listed in ``COLUMNS``; the schema is documented in docs/results.md. ``score_run`` writes it into
+the generation of scores it stamps, so every caller of score_run gets it.
 """
 
 from __future__ import annotations
 
 import csv
 import io
-from pathlib import Path
+from collections.abc import Iterable
 
-from vlmproprio.episodes import atomic_write_text
+from vlmproprio.evaluation.tables import ScoreTables
 from vlmproprio.scoring import ITEMS
-from vlmproprio.transcripts import cell_key, read_transcripts
+from vlmproprio.transcripts import Transcript, cell_key
 
 FRAMES_CSV = "frames.csv"
 COLUMNS: tuple[str, ...] = (
@@ -47,9 +48,10 @@ def verdict(items: dict, item: str) -> str:
     return "mentioned" if v.get("mentioned") else "none"
 
 
-def frame_rows(run_dir: Path, tables) -> list[dict]:
-    """The rows of the table, in the order of the score rows (model, episode, condition) then frame."""
-    transcripts = {(t.model, t.episode_id, t.condition): t for t in read_transcripts(Path(run_dir))}
+def frame_rows(tables: ScoreTables, transcripts: Iterable[Transcript]) -> list[dict]:
+    """The rows of the table, in the order of the score rows (model, episode, condition) then frame;
+    ``transcripts``: the run's, as scored."""
+    transcripts = {(t.model, t.episode_id, t.condition): t for t in transcripts}
     out: list[dict] = []
     for row in tables.rows:
         key = (row["model"], row["episode_id"], row["condition"])
@@ -87,13 +89,10 @@ def frame_rows(run_dir: Path, tables) -> list[dict]:
     return out
 
 
-def write_frame_table(run_dir: str | Path, tables) -> Path:
-    """Write RUN_DIR/scores/frames.csv from a run's ScoreTables (vlmproprio.evaluation.score_run)."""
-    run_dir = Path(run_dir)
+def frame_table_text(tables: ScoreTables, transcripts: Iterable[Transcript]) -> str:
+    """The text of scores/frames.csv."""
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=COLUMNS, lineterminator="\n")
     w.writeheader()
-    w.writerows(frame_rows(run_dir, tables))
-    path = run_dir / "scores" / FRAMES_CSV
-    atomic_write_text(path, buf.getvalue())
-    return path
+    w.writerows(frame_rows(tables, transcripts))
+    return buf.getvalue()

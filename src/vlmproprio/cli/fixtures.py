@@ -1,0 +1,105 @@
+"""The fixture folder's commands: verify, manifest, record, import-demos, export-dataset."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from vlmproprio.cli.arguments import add_fixtures, add_list, add_no_progress, command, fixtures_of
+from vlmproprio.options import FIXTURES_HELP, split_list
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    from vlmproprio.summary import fixture_summary, format_summary
+
+    print(format_summary(fixture_summary(fixtures_of(args))))
+    return 0
+
+
+def cmd_manifest(args: argparse.Namespace) -> int:
+    from vlmproprio.episodes import write_manifest
+
+    path = write_manifest(fixtures_of(args))
+    print(f"wrote {path}")
+    return 0
+
+
+def cmd_record(args: argparse.Namespace) -> int:
+    from vlmproprio.record.recorder import record_all
+
+    fixtures = fixtures_of(args, must_exist=False)
+    sheets = args.contact_sheets or Path("runs") / "contact_sheets"
+    record_all(fixtures, episode_ids=split_list(args.episodes) or None, contact_sheets=sheets)
+    return 0
+
+
+def cmd_import_demos(args: argparse.Namespace) -> int:
+    from vlmproprio.record.demos import import_demos
+
+    results = import_demos(
+        args.file,
+        args.out,
+        args.task,
+        camera=args.camera,
+        demos=split_list(args.demos) or None,
+        replay_mode=args.replay,
+        prefix=args.prefix,
+        progress=not args.no_progress,
+    )
+    for r in results:
+        print(f"{r['episode_id']}: {r['demo']}, {r['steps']} steps, {r['frames']} frames, {r['replay']} replay")
+    wall = sum(r["wall_s"] for r in results)
+    print(f"imported {len(results)} demos into {args.out} in {wall:.1f} s ({wall / len(results):.1f} s per demo)")
+    return 0
+
+
+def cmd_export_dataset(args: argparse.Namespace) -> int:
+    from vlmproprio.dataset_export import export_dataset
+
+    episodes = split_list(args.episodes) or None
+    summary = export_dataset(fixtures_of(args), args.out, episodes, overwrite=args.overwrite)
+    print(summary.line())
+    return 0
+
+
+def add_fixture_commands(sub) -> None:
+    """verify, manifest, record: the fixture folder itself."""
+    p = command(sub, "verify", cmd_verify)
+    add_fixtures(p)
+    p = command(sub, "manifest", cmd_manifest)
+    add_fixtures(p)
+    p = command(sub, "record", cmd_record)
+    add_fixtures(p, FIXTURES_HELP + "; written if it does not exist")
+    add_list(p, "--episodes", "only these episode ids, a comma list or repeated (default: all 22)", "IDS", spaces=True)
+    p.add_argument(
+        "--contact-sheets",
+        type=Path,
+        default=None,
+        help="folder for one contact sheet per episode (default: runs/contact_sheets)",
+    )
+
+
+def add_import_demos(sub) -> None:
+    p = command(sub, "import-demos", cmd_import_demos)
+    p.add_argument("file", type=Path, metavar="FILE.hdf5", help="robosuite or robomimic demo file")
+    p.add_argument("--task", help="door | pick_place_cereal | pick_place_can | lift (default: from the file's env)")
+    p.add_argument("--out", type=Path, required=True, help="fixture folder to write episodes/ and manifest.json into")
+    p.add_argument("--camera", help="camera to render (default: the task's, e.g. vlmproprio_bins for pick-place)")
+    add_list(p, "--demos", "only these demos, e.g. demo_1,demo_3 (default: all)", "NAMES", spaces=True)
+    p.add_argument(
+        "--replay",
+        choices=("auto", "actions", "states"),
+        default="auto",
+        help="actions: re-simulate the recorded actions, checked bit for bit against the recorded states; states: "
+        "set the recorded states; auto: actions when they reproduce every state, else states (default)",
+    )
+    p.add_argument("--prefix", help="episode id prefix (default: imp_<task>, giving ids like imp_door_01)")
+    add_no_progress(p)
+
+
+def add_export_dataset(sub) -> None:
+    p = command(sub, "export-dataset", cmd_export_dataset)
+    p.add_argument("out", type=Path, metavar="OUT", help="folder to write (must be empty or absent)")
+    add_fixtures(p)
+    add_list(p, "--episodes", "export these episodes only, a comma list or repeated (default: all)", "IDS", spaces=True)
+    p.add_argument("--overwrite", action="store_true", help="replace an earlier export in OUT")

@@ -1,0 +1,71 @@
+"""The `vlmproprio` argument parser: every sub-command, in the order `vlmproprio --help` lists them."""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Callable
+
+from vlmproprio.cli.cassette import add_cassette
+from vlmproprio.cli.fixtures import add_export_dataset, add_fixture_commands, add_import_demos
+from vlmproprio.cli.models import add_make_tiny_model, add_models
+from vlmproprio.cli.power import add_power
+from vlmproprio.cli.report import add_compare, add_report
+from vlmproprio.cli.run import add_run, add_show
+from vlmproprio.cli.score import add_score
+
+EPILOG = """\
+typical use:
+  vlmproprio verify                          check the shipped fixtures against their manifest
+  vlmproprio models                          the models, and which can run here (cassette, weights)
+  vlmproprio run --model reference --out runs/reference   caption all 22 episodes under every condition
+  vlmproprio report runs/reference           tables, plots and an HTML page for a run
+  vlmproprio import-demos demo.hdf5 --out my_fixtures    your own robosuite demos as episodes
+  pytest benchmark/ --model tiny-qwen2-vl    the benchmark with its regression gates
+
+lists: --model, --conditions, --episodes ... take a comma list, may be repeated, or both.
+fixtures: --fixtures, else $VLMPROPRIO_FIXTURES, else the fixtures/ of the repository you are in.
+caches: --cache-dir, else $VLMPROPRIO_CACHE, else the user cache directory (~/.cache/vlmproprio).
+"""
+
+
+# Sub-commands in the order `vlmproprio --help` lists them.
+_SUBCOMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
+    add_fixture_commands,
+    add_import_demos,
+    add_make_tiny_model,
+    add_run,
+    add_models,
+    add_cassette,
+    add_score,
+    add_report,
+    add_compare,
+    add_power,
+    add_export_dataset,
+    add_show,
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="vlmproprio",
+        description="Does proprioception make a VLM's captions and subtask segmentations of robot "
+        "episodes better? Record episodes, caption them with a model under four state conditions "
+        "and four controls, score the captions and segmentations, and report.",
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for add in _SUBCOMMANDS:
+        add(sub)
+    return parser
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("vlmproprio")
+    except PackageNotFoundError:  # a source tree on the path without an install
+        return "unknown (not installed)"

@@ -1,0 +1,117 @@
+"""The commands that read scores: report (tables, plots, HTML; scoring first when there are none), compare."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from vlmproprio.cli.arguments import (
+    RUN_FIXTURES_HELP,
+    add_cache_dir,
+    add_fixtures,
+    add_list,
+    add_no_progress,
+    add_run_dir,
+    cache_root_of,
+    command,
+)
+from vlmproprio.cli.console import stages
+from vlmproprio.errors import UsageError
+from vlmproprio.options import split_list
+
+
+def score_and_report(run_dir: Path, fixtures: Path | None, cache: Path, *, progress: bool = True) -> int:
+    from vlmproprio.evaluation import score_run
+    from vlmproprio.report import write_report
+
+    with stages("score + report", 2, progress) as bar:
+        score_run(run_dir, fixtures=fixtures, embedding_cache=cache / "embeddings")
+        bar.update()
+        index = write_report(run_dir, fixtures=fixtures, cache_dir=cache)
+        bar.update()
+    print(f"report: {index}")
+    return 0
+
+
+def cmd_report(args: argparse.Namespace) -> int:
+    from vlmproprio.report import scores_present, write_report
+
+    progress = not args.no_progress
+    cache = cache_root_of(args)
+    with stages("report", 2, progress) as bar:
+        if not scores_present(args.run_dir):
+            from vlmproprio.evaluation import score_run
+
+            if not args.run_dir.is_dir():
+                raise UsageError(f"{args.run_dir}: run directory not found")
+            bar.set_description("report: scoring (no scores yet)")
+            score_run(args.run_dir, fixtures=args.fixtures, progress=progress, embedding_cache=cache / "embeddings")
+            print(f"scored {args.run_dir} (no scores were there)")
+        bar.update()
+        bar.set_description("report: tables, plots, page")
+        index = write_report(
+            args.run_dir,
+            fixtures=args.fixtures,
+            out=args.out,
+            examples=split_list(args.examples) or None,
+            trace_conditions=split_list(args.trace_conditions) or None,
+            cache_dir=cache,
+        )
+        bar.update()
+    print(f"report: {index}")
+    return 0
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from vlmproprio.io import atomic_write_text
+    from vlmproprio.report import compare_runs
+
+    kwargs = {}
+    if args.metrics:
+        kwargs["metrics"] = split_list(args.metrics)
+    comparison = compare_runs(
+        args.run_a,
+        args.run_b,
+        model_a=args.model_a,
+        model_b=args.model_b,
+        tasks=split_list(args.task) or None,
+        **kwargs,
+    )
+    text = comparison.to_markdown()
+    print(text, end="")
+    if args.out:
+        atomic_write_text(args.out, text)
+        print(f"wrote {args.out}")
+    return 0
+
+
+def add_report(sub) -> None:
+    p = command(sub, "report", cmd_report)
+    add_run_dir(p)
+    add_fixtures(p, RUN_FIXTURES_HELP)
+    p.add_argument("--out", type=Path, default=None, help="report folder (default: RUN_DIR/report)")
+    add_list(
+        p,
+        "--examples",
+        "episodes for the trace figures, a comma list or repeated (default: the first Door and the first bin episode)",
+        "IDS",
+    )
+    add_list(
+        p,
+        "--trace-conditions",
+        "conditions in the trace figures, a comma list or repeated (default: none,both, as in the paper)",
+        "CONDS",
+    )
+    add_cache_dir(p)
+    add_no_progress(p)
+
+
+def add_compare(sub) -> None:
+    p = command(sub, "compare", cmd_compare)
+    p.add_argument("run_a", type=Path, metavar="RUN_A", help="scored run directory (A)")
+    p.add_argument("run_b", type=Path, metavar="RUN_B", nargs="?", help="scored run directory (B; default RUN_A)")
+    p.add_argument("--model-a", help="model of side A")
+    p.add_argument("--model-b", help="model of side B")
+    add_list(p, "--task", "door, pick_place, all: a comma list or repeated (default: every one)", "TASKS")
+    add_list(p, "--metrics", "score columns, a comma list or repeated (default: the main metrics)", "COLS")
+    p.add_argument("--out", type=Path, help="also write the comparison as Markdown to this file")
