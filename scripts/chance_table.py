@@ -5,7 +5,7 @@
 Random chance of every count of segmentation points for every fixture episode's ground truth, exactly as
 ``ChanceTable`` would compute it, so scoring with an empty chance cache draws nothing. Run it after adding or
 re-recording episodes, or after changing anything ``evaluation.chance.chance_settings`` names (the table is
-ignored, entry by entry or as a whole, when it does not match; tests/test_chance_table.py checks it does).
+ignored, entry by entry or as a whole, when it does not match; tests/evaluation/test_chance.py checks it does).
 """
 
 from __future__ import annotations

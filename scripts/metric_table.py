@@ -2,7 +2,7 @@
 
     python scripts/metric_table.py          # after adding or changing a MetricSpec
 
-tests/test_metric_table.py fails while the page and the table differ.
+tests/evaluation/test_metrics.py fails while the page and the table differ.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Shared helpers for the reliability suite: the real CLI in a subprocess, fixture copies, run snapshots.
 
-Every item of issue 8 is one ``test_*.py`` module next to this file; what they share lives here so that each
+Every guarantee of docs/reliability.md is one ``test_*.py`` module next to this file; what they share lives here so that each
 module reads as the guarantee it checks.
 """
 

@@ -47,7 +47,7 @@ def _echoing_handler(make_handler):
                 if status >= 400:
                     payload = {"error": {"message": f"rejected request with Authorization: {auth}", "type": "x"}}
                 elif isinstance(payload, dict) and payload.get("choices"):
-                    # a normal answer that quotes the request's headers (issue 15: it reached the cassette)
+                    # a normal answer that quotes the request's headers (such a quote once reached the cassette)
                     message = payload["choices"][0]["message"]
                     token = auth.split()[-1] if auth else ""
                     message["content"] = (

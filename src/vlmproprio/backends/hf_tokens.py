@@ -18,7 +18,7 @@ next to them), not ``single_word``; and when special tokens are not split
 alike: a ``Metaspace`` pre-tokenizer with ``prepend_scheme="first"`` (Llama-2
 and Mistral style tokenizers, as in LLaVA-1.5) marks only the piece at the start
 of the whole text as a word start, so a piece tokenized alone can come out one
-token longer. Such tokenizers count whole texts, as before; and the first texts a
+token longer. Such tokenizers count whole texts (slower, never wrong); and the first texts a
 counter sees are also counted whole, and any difference turns cutting off for
 good. Tests compare both counts on the pipeline's real prompts and on a
 ``Metaspace`` tokenizer.

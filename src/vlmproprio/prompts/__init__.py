@@ -21,7 +21,7 @@ How a condition changes the prompt:
 * ``state_only``: no images; the state lines are the only view of the episode.
 
 ``prompt_version()`` names the template set and its version; it enters the cache key, and the rendered
-prompts are tested (tests/test_prompts.py), so a template edit that changes what is sent needs a bump of
+prompts are tested (tests/prompts/test_rendering.py), so a template edit that changes what is sent needs a bump of
 the set's ``VERSION``.
 """
 

@@ -1,4 +1,4 @@
-"""The request key's text laid out directly (issue 17) is the canonical JSON of the key document, byte for byte."""
+"""The request key's text laid out directly is the canonical JSON of the key document, byte for byte."""
 
 from __future__ import annotations
 

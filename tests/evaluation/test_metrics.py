@@ -32,7 +32,7 @@ from vlmproprio.evaluation.metrics import (
 from vlmproprio.report import compare, tables
 from vlmproprio.verdicts import load_claims
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT))
 
 from benchmark.metrics import exact_metrics, float_metrics  # noqa: E402

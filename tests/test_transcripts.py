@@ -1,4 +1,4 @@
-"""Transcripts written fast (issue 17) are the transcripts written before: the same dict, the same bytes."""
+"""A transcript's file: the dict and the bytes of its canonical JSON, and back."""
 
 from __future__ import annotations
 

@@ -21,8 +21,8 @@ from vlmproprio.embeddings import EmbeddingError
 from vlmproprio.evaluation import ScoreRunError, score_run
 from vlmproprio.segmentation import THRESHOLDS
 
-SRC = Path(__file__).resolve().parents[1] / "src"
-TESTS = Path(__file__).resolve().parent
+SRC = Path(__file__).resolve().parents[2] / "src"
+TESTS = Path(__file__).resolve().parents[1]
 CONDS = ("none", "ee", "both", "both_shuffled")
 MISSING = {("door_00", "both"): [3, 4], ("bin2_00", "none"): [0]}
 

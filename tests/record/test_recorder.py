@@ -32,7 +32,7 @@ pytestmark = pytest.mark.skipif(
     "install it with `pip install -e .[record]` to check that the fixtures can be regenerated",
 )
 
-FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
+FIXTURES = Path(__file__).resolve().parents[2] / "fixtures"
 
 
 @pytest.mark.record

@@ -1,4 +1,4 @@
-"""What each condition's prompts say: only what that condition sends (issue 13).
+"""What each condition's prompts say: only what that condition sends.
 
 Every request the pipeline sends for one shipped episode is rendered under every condition and read as
 text. The suite's prompts must not mention joint angles or hand positions where none are sent, nor images
@@ -21,7 +21,7 @@ from vlmproprio.errors import UsageError
 from vlmproprio.pipeline import PipelineSettings, caption_episodes
 from vlmproprio.prompts import PromptOptions, prompt_version, template
 
-FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
+FIXTURES = Path(__file__).resolve().parents[2] / "fixtures"
 STATE_WORDS = re.compile(r"joint|end-effector|hand position|position and orientation|gripper opening", re.IGNORECASE)
 IMAGE_WORDS = re.compile(r"\bimages?\b", re.IGNORECASE)
 
@@ -118,7 +118,7 @@ def test_paper_verbatim_sends_the_papers_text(episode):
 
 def test_prompt_versions_name_the_set_and_enter_requests(episode):
     assert prompt_version() == f"suite-{template('VERSION', 'suite')}"
-    assert prompt_version() != "paper-1"  # the version before issue 13
+    assert prompt_version() != "paper-1"  # the paper's own text, before the condition-aware rewrites
     with pytest.raises(UsageError, match="prompt version"):
         PromptOptions(version="paper")
 

@@ -1,4 +1,4 @@
-"""State text and the reference captioner's motions remembered (issue 17): the same text and motions as computed
+"""State text and the reference captioner's motions remembered: the same text and motions as computed
 afresh, and a value that cannot be written still refused."""
 
 from __future__ import annotations

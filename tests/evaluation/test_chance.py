@@ -18,7 +18,7 @@ from vlmproprio.evaluation.chance import (
 )
 from vlmproprio.segmentation import CHANCE_DRAWS, chance_is_exact, chance_random, truth_of
 
-FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
+FIXTURES = Path(__file__).resolve().parents[2] / "fixtures"
 
 
 @pytest.fixture(scope="module")
