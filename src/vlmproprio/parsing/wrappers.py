@@ -37,8 +37,8 @@ _SUBLABEL = re.compile(
 _HEADING = re.compile(r"^\s{0,3}#{1,6}\s+\S.*$")
 _PREAMBLE = re.compile(
     r"^\s*(?:(?:sure|certainly|of course|okay|ok|alright|absolutely)\b[^.:\n]{0,40}[.!,]\s*)?"
-    r"(?:(?:here\s+(?:is|are|'s)|below\s+(?:is|are)|the\s+following\s+(?:is|are))\b[^:\n]{0,80}|"
-    r"(?:based on|given|after|from|looking at|considering)\b[^:\n]{0,160}?,\s*(?:here\s+(?:is|are|'s))?[^:\n]{0,80})"
+    r"(?:(?:here(?:\s+is|\s+are|'s|’s)|below\s+(?:is|are)|the\s+following\s+(?:is|are))\b[^:\n]{0,80}|"
+    r"(?:based on|given|after|from|looking at|considering)\b[^:\n]{0,160}?,\s*(?:here(?:\s+is|\s+are|'s|’s))?[^:\n]{0,80})"
     r":\s*",
     re.IGNORECASE,
 )
