@@ -23,7 +23,7 @@ _BULLET = re.compile(r"^\s*(?:[-*•+>]\s+|\d{1,3}[.)]\s+(?=\S*(?:" + _WORDS + r
 _HEADING = re.compile(r"^\s{0,3}#{1,6}\s*")
 _WORDED = re.compile(
     rf"^{_EM}?\s*[\[<(]?\s*(?P<word>{_WORDS})\s*#?\s*(?P<n>\d{{1,4}})(?:\s*(?:/|of)\s*\d{{1,4}})?"
-    rf"(?:\s*\([^)\n]{{0,40}}\))?\s*[\]>)]?\s*(?P<em>{_EM})?\s*(?P<sep>{_SEP})?\s*{_EM}?\s*(?P<rest>.*)$",
+    rf"(?:\s*\([^)\n]{{0,40}}\))?\s*(?P<close>[\]>)])?\s*(?P<em>{_EM})?\s*(?P<sep>{_SEP})?\s*{_EM}?\s*(?P<rest>.*)$",
     re.IGNORECASE,
 )
 _BARE = re.compile(rf"^{_EM}?\s*[\[(]?(?P<n>\d{{1,4}})[\])]?\s*{_EM}?\s*(?P<sep>{_SEP})\s*{_EM}?\s*(?P<rest>.*)$")
@@ -89,7 +89,11 @@ def read_label(line: str) -> _Label | None:
         removed.append("bullet")
     m = _WORDED.match(text.strip())
     if m and not (
-        m.group("sep") or m.group("em") or not m.group("rest").strip() or text.strip().startswith(("*", "_"))
+        m.group("sep")
+        or m.group("em")
+        or m.group("close")
+        or not m.group("rest").strip()
+        or text.strip().startswith(("*", "_"))
     ):
         m = None  # "Frame 1 shows …": no label, a sentence
     if m is None:
