@@ -14,7 +14,7 @@ import re
 from dataclasses import dataclass
 
 from vlmproprio.parsing.common import is_state_echo, squash
-from vlmproprio.parsing.wrappers import clean_fragment
+from vlmproprio.parsing.wrappers import clean_fragment, compact_space
 
 _WORDS = r"frame|image|img|picture|photo|pic|step|shot|view|keyframe|snapshot|caption"
 _EM = r"(?:\*\*|__|\*|_)"
@@ -171,6 +171,7 @@ def table_entries(lines: list[str]) -> list[Entry]:
 
 def ordinal_entries(body: str, count: int) -> list[Entry]:
     """Captions introduced by an ordinal phrase in running text ("In the first frame, …", "In image 2, …")."""
+    body = compact_space(body)
     matches = list(_ORDINAL.finditer(body))
     out: list[Entry] = []
     for j, m in enumerate(matches):

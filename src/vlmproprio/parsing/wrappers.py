@@ -10,7 +10,7 @@ import re
 
 from vlmproprio.parsing.common import strip_emphasis
 
-_FENCE_LINE = re.compile(r"^\s*(?:```|~~~)[\w+-]*\s*$", re.MULTILINE)
+_FENCE_LINE = re.compile(r"^[ \t]*(?:```|~~~)[\w+-]*[ \t]*$", re.MULTILINE)
 _INLINE_FENCE = re.compile(r"^\s*```[\w+-]*\s*(.*?)\s*```\s*$", re.DOTALL)
 _QUOTES = (('"', '"'), ("“", "”"), ("'", "'"), ("‘", "’"), ("«", "»"), ("`", "`"), ("„", "“"))
 # Keys a model puts its caption under, in order of preference.
@@ -52,6 +52,14 @@ _TRAILER = re.compile(
     r"(?:^|(?<=[.!?\"”)])\s+|\n\s*)(?:i hope this|let me know|feel free|hope this helps)\b.*$",
     re.IGNORECASE | re.DOTALL,
 )
+
+
+def compact_space(text: str) -> str:
+    """Whitespace runs made short (a blank line stays a blank line): the patterns that may start after any
+    whitespace would otherwise rescan a long run from each of its characters."""
+    text = re.sub(r"[^\S\n]+", " ", text)  # each run matched once from its start: linear
+    text = re.sub(r"\n(?: ?\n)+ ?", "\n\n", text)
+    return re.sub(r" ?\n ?", "\n", text)
 
 
 def strip_fences(text: str) -> tuple[str, tuple[str, ...]]:
@@ -159,6 +167,7 @@ def strip_headings(text: str) -> tuple[str, tuple[str, ...]]:
 
 def strip_trailer(text: str) -> tuple[str, tuple[str, ...]]:
     """A trailing explanation ("This instruction incorporates …", "Note: …") removed when text remains."""
+    text = compact_space(text)
     m = _TRAILER.search(text)
     if not m or not text[: m.start()].strip():
         return text, ()
