@@ -156,7 +156,7 @@ class CellRun:
     def accept_p1(self, answers: Sequence[Answer]) -> None:
         for g, (members, answer) in enumerate(zip(self.groups, answers, strict=True)):
             self._record("p1", g, answer)
-            self.frame_captions += parsing.parse_frame_captions(answer.text, len(members))
+            self.frame_captions += parsing.parse_frame_captions(answer.text, len(members), offset=members.start)
 
     def p2_requests(self) -> list[ChatRequest]:
         out = []
