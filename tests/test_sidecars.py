@@ -147,7 +147,7 @@ def test_without_the_encoder_package_the_sidecars_name_the_encoder(tmp_path, mon
     recorded = EncoderSpec(DEFAULT_ENCODER_NAME, "/somewhere/else", "sha256:abc", batch_size=8)
     path = tmp_path / "m.embeddings.npz"
     write_sidecar(path, "m", [sidecar_section(recorded, _vectors(["a"]))])
-    monkeypatch.setattr(E, "default_encoder_installed", lambda: False)
+    monkeypatch.setattr(E.embedder, "default_encoder_installed", lambda: False)
     spec = resolve_encoder([read_sidecar(path)])
     assert spec.key == recorded.key and spec.path == ""  # same key, same bits; nothing to load
     with pytest.raises(EmbeddingError, match="several revisions"):
