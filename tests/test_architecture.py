@@ -87,60 +87,94 @@ def test_no_module_imports_a_later_stage(module: str, path: Path) -> None:
     assert not later, f"vlmproprio.{module} (stage {mine}) imports later stage(s): {', '.join(later)}"
 
 
-# evaluation/ is one stage made of modules in the order score_run runs them; inside it data flows one way too
-EVALUATION_ORDER = (
-    "metrics",
-    "definitions",
-    "formats",
-    "inputs",
-    "captions",
-    "cells",
-    "out_of_sample",
-    "chance",
-    "tables",
-    "statistics",
-    "controls",
-    "meta",
-    "judge",
-    "frame_table",
-    "generations",
-    "run",
+# A package is one stage whose modules import each other one way too, in the order data flows through them: a
+# module imports only siblings before it, each by its own path (never the package, whose __init__ imports all).
+PACKAGE_ORDERS: dict[str, tuple[str, ...]] = {
+    # the order score_run runs them in
+    "evaluation": (
+        "metrics",
+        "definitions",
+        "formats",
+        "inputs",
+        "captions",
+        "cells",
+        "out_of_sample",
+        "chance",
+        "tables",
+        "statistics",
+        "controls",
+        "meta",
+        "judge",
+        "frame_table",
+        "generations",
+        "run",
+    ),
+    # metrics needs no trace: it scores points, wherever they come from
+    "segmentation": ("trace", "metrics", "chance", "sweep"),
+    "scoring": ("lexicon", "expectation", "matching", "rubric", "judge"),
+    "episodes": ("types", "pixels", "manifest", "store"),
+    "embeddings": ("encoder", "store", "sidecar", "embedder"),
+    "parsing": ("common", "reasoning", "wrappers", "frame_lines", "frames", "single"),
+}
+EVALUATION_ORDER = PACKAGE_ORDERS["evaluation"]
+
+
+def sibling_imports(package: str, path: Path) -> list[str]:
+    """The modules of ``package`` that ``path`` imports; ``"__init__"`` for the package itself."""
+    order = PACKAGE_ORDERS[package]
+    found = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module == f"vlmproprio.{package}":
+            found += [a.name if a.name in order else "__init__" for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and (node.module or "").startswith(f"vlmproprio.{package}."):
+            found.append(node.module.split(".")[2])
+        elif isinstance(node, ast.Import):
+            found += [a.name.split(".")[2] for a in node.names if a.name.startswith(f"vlmproprio.{package}.")]
+    return found
+
+
+@pytest.mark.parametrize("package", sorted(PACKAGE_ORDERS))
+def test_every_module_of_a_package_has_a_place_in_its_order(package: str) -> None:
+    modules = {p.stem for p in (SRC / package).glob("*.py") if p.stem != "__init__"}
+    assert modules == set(PACKAGE_ORDERS[package])
+
+
+@pytest.mark.parametrize(
+    ("package", "name"), [(p, n) for p, order in sorted(PACKAGE_ORDERS.items()) for n in order], ids=str
 )
+def test_no_module_of_a_package_imports_a_later_sibling(package: str, name: str) -> None:
+    order = PACKAGE_ORDERS[package]
+    found = sibling_imports(package, SRC / package / f"{name}.py")
+    later = [m for m in found if m == "__init__" or order.index(m) >= order.index(name)]
+    assert not later, f"vlmproprio.{package}.{name} imports {', '.join(later)} (only modules before it)"
 
 
-def test_every_evaluation_module_has_a_place_in_the_order() -> None:
-    modules = {p.stem for p in (SRC / "evaluation").glob("*.py") if p.stem != "__init__"}
-    assert modules == set(EVALUATION_ORDER)
+# Packages that are one module's API split by concern: their __init__ re-exports every public name. The others
+# (evaluation, parsing) export a chosen API and keep their helpers to themselves.
+FACADES = ("embeddings", "episodes", "scoring", "segmentation")
 
 
-@pytest.mark.parametrize("name", EVALUATION_ORDER)
-def test_no_evaluation_module_imports_a_later_one(name: str) -> None:
-    mine = EVALUATION_ORDER.index(name)
-    inside = [
-        m.split(".")[1] for m in imported_stages(SRC / "evaluation" / f"{name}.py") if m.startswith("evaluation.")
-    ]
-    later = [m for m in inside if EVALUATION_ORDER.index(m) > mine]
-    assert not later, f"vlmproprio.evaluation.{name} imports later evaluation module(s): {', '.join(later)}"
+@pytest.mark.parametrize("package", FACADES)
+def test_a_package_with_all_re_exports_every_public_name_of_its_modules(package: str) -> None:
+    """Callers import from the package alone, so a module can move inside it without touching them."""
+    import importlib
 
-
-# segmentation/: trace → metrics → chance → sweep; a module imports only the ones before it (metrics needs
-# no trace: it scores points, wherever they come from)
-SEGMENTATION_ORDER = ("trace", "metrics", "chance", "sweep")
-
-
-def test_every_segmentation_module_has_a_place_in_the_order() -> None:
-    modules = {p.stem for p in (SRC / "segmentation").glob("*.py") if p.stem != "__init__"}
-    assert modules == set(SEGMENTATION_ORDER)
-
-
-@pytest.mark.parametrize("name", SEGMENTATION_ORDER)
-def test_no_segmentation_module_imports_a_later_one(name: str) -> None:
-    mine = SEGMENTATION_ORDER.index(name)
-    inside = [
-        m.split(".")[1] for m in imported_stages(SRC / "segmentation" / f"{name}.py") if m.startswith("segmentation.")
-    ]
-    later = [m for m in inside if SEGMENTATION_ORDER.index(m) >= mine]
-    assert not later, f"vlmproprio.segmentation.{name} imports a later or its own module: {', '.join(later)}"
+    pkg = importlib.import_module(f"vlmproprio.{package}")
+    missing = []
+    for name in PACKAGE_ORDERS[package]:
+        module = importlib.import_module(f"vlmproprio.{package}.{name}")
+        public = {
+            n
+            for n, v in vars(module).items()
+            if not n.startswith("_") and getattr(v, "__module__", "") == module.__name__
+        }
+        public |= {n for n in vars(module) if n.isupper() and not n.startswith("_") and n != "TYPE_CHECKING"}
+        missing += [
+            f"{name}.{n}"
+            for n in sorted(public)
+            if getattr(pkg, n, None) is not getattr(module, n) or n not in pkg.__all__
+        ]
+    assert not missing, f"vlmproprio.{package} does not re-export: {', '.join(missing)}"
 
 
 # ---------------------------------------------------------------------------------------------- shape rules
