@@ -72,7 +72,7 @@ def add_model(run: Path, source: str, model: str, final_of: dict[str, str]) -> N
 
 def shared_report(tmp_path_factory: pytest.TempPathFactory) -> tuple[tuple[Path, Path, list[str]], Path]:
     """make_run's run with its report written, and the report's index.html: built once per test session, as
-    test_report.py and test_report_browser.py both only read it (a test that changes a run copies it first).
+    tests/report/test_report.py and tests/report/test_browser.py both only read it (a test that changes a run copies it first).
     Under xdist (``--dist loadscope``) the two modules may run on different workers: the first builds it in the
     folder the workers share, holding a lock; the other waits for the lock and reuses it."""
     from vlmproprio.io import text_computed_once
