@@ -52,14 +52,20 @@ import os
 import re
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from vlmproprio.backends.base import Backend, BackendError
+from vlmproprio.backends.base import Availability, Backend, BackendError
 from vlmproprio.backends.hf_tokens import PromptTokenCounter
 from vlmproprio.backends.scheduling import RequestShape, plan_batches, round_up
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart
 from vlmproprio.episodes import sha256_file
+from vlmproprio.kinds import KindOption, KindSpec, register_kind
+from vlmproprio.models import ModelRef, file_slug
+
+if TYPE_CHECKING:
+    from vlmproprio.backends.settings import BackendSettings
 
 DEVICES = ("cpu", "cuda", "auto")
 DTYPES = ("auto", "float32", "bfloat16", "float16")
@@ -518,3 +524,109 @@ def _resolve_dtype(dtype: str, device: str) -> str:
     if torch.cuda.is_available() and torch.cuda.is_bf16_supported():
         return "bfloat16"
     return "float32"
+
+
+# ---------------------------------------------------------------------------------------------- the hf kind
+
+
+@dataclass(frozen=True)
+class HFSettings:
+    """A local transformers model: the keyword arguments of HFBackend a run sets.
+
+    Only ``dtype`` and ``attn_implementation`` change answers (they are in the cache key); the rest is how fast.
+    """
+
+    device: str = "cpu"  # cpu | cuda | cuda:N | auto (accelerate device map)
+    dtype: str = "auto"  # auto (float32 on CPU, bfloat16 on GPU) | float32 | bfloat16 | float16
+    attn_implementation: str = "sdpa"  # eager | sdpa | flash_attention_2 | ...
+    max_batch_size: int = 8  # requests per generate() call
+    threads: int | None = None  # torch threads (pin to 1 for bit-identical CPU runs)
+    static_cache: bool = False  # static KV cache per batch, decode step compiled on a GPU (not in the cache key)
+    max_batch_tokens: int | None = None  # cap on rows x longest prompt per batch (None: 16384 on a CPU, else none)
+    allow_download: bool = False  # fetch missing weights from the Hugging Face Hub (off: local files only)
+
+
+def hf_slug(name: str, weights: str) -> str:
+    """A folder is named by its last part (its absolute path differs between machines), a repo id in full."""
+    w = weights.rstrip("/")
+    looks_like_path = w.startswith(("/", ".", "~")) or w.count("/") > 1
+    readable = w.rsplit("/", 1)[-1] if looks_like_path else w
+    return file_slug(name, "hf", w, readable, lossless=not looks_like_path)
+
+
+def _create_hf(ref: ModelRef, settings: BackendSettings) -> Backend:
+    weights, model_id = ref.weights, None
+    if ref.tiny_family:
+        from vlmproprio.backends.tiny import ensure_tiny_model
+
+        weights, model_id = str(ensure_tiny_model(ref.tiny_family, settings.home)), ref.name
+    return HFBackend(weights, model_id=model_id, **asdict(settings.for_kind("hf")))
+
+
+def _missing_modules(*names: str) -> list[str]:
+    import importlib.util
+
+    return [n for n in names if importlib.util.find_spec(n) is None]
+
+
+def _hf_live(ref: ModelRef, settings: BackendSettings) -> Availability:
+    if missing := _missing_modules("torch", "transformers"):
+        return Availability(False, f"needs {', '.join(missing)}: pip install 'vlmproprio[hf]'")
+    if ref.tiny_family:
+        return Availability(True, "tiny model, built locally on first use")
+    ok, why = hf_weights_available(ref.weights)
+    allow_download = settings.for_kind("hf").allow_download
+    if not ok and allow_download and "/" in ref.weights and not ref.weights.startswith(("/", ".")):
+        return Availability(True, f"{ref.weights} will be downloaded from the Hugging Face Hub (--allow-download)")
+    return Availability(ok, why)
+
+
+_HF_OPTIONS = (
+    KindOption(
+        "--allow-download",
+        "allow_download",
+        {
+            "run": "fetch missing hf: weights from the Hugging Face Hub when it is reachable (default: local files only)",
+            "models": "count hf: weights on the Hub as available",
+        },
+        action="store_true",
+    ),
+    KindOption("--device", "device", {"run": "cpu | cuda | cuda:N | auto (default cpu)"}, default="cpu"),
+    KindOption("--dtype", "dtype", {"run": "auto | float32 | bfloat16 | float16 (default auto)"}, default="auto"),
+    KindOption(
+        "--attn",
+        "attn_implementation",
+        {"run": "attention implementation: eager | sdpa | flash_attention_2"},
+        default="sdpa",
+    ),
+    KindOption("--batch-size", "max_batch_size", {"run": "requests per generate() call (default 8)"}, int, 8),
+    KindOption("--threads", "threads", {"run": "torch threads (pin to 1 for bit-identical CPU runs)"}, int),
+    KindOption("--judge-threads", "threads", {"score": "torch threads of a local judge (default 1)"}, int, 1),
+    KindOption(
+        "--batch-tokens",
+        "max_batch_tokens",
+        {"run": "cap on a batch's rows x longest prompt, in tokens (default: 16384 on a CPU, none on a GPU)"},
+        int,
+    ),
+    KindOption(
+        "--static-cache",
+        "static_cache",
+        {"run": "static KV cache; on a GPU the decode step is compiled (first batches pay ~1 min; pays on long runs)"},
+        action="store_true",
+    ),
+)
+
+register_kind(
+    KindSpec(
+        kind="hf",
+        create=_create_hf,
+        live=_hf_live,
+        prefix="hf:",
+        syntax="hf:<folder or HF repo id>",
+        label="transformers",
+        slug=hf_slug,
+        settings_type=HFSettings,
+        options=_HF_OPTIONS,
+        option_group="local models (hf)",
+    )
+)
