@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vlmproprio.errors import UsageError
-from vlmproprio.kinds import kind_specs
+from vlmproprio.kinds import kind_spec, kind_specs
 
 TINY_PREFIX = "tiny:"
 STATE_RULES = "state-aware rules, NOT a VLM"  # the "weights" of `reference-state`, as `vlmproprio models` shows them
@@ -53,7 +53,7 @@ class ModelRef:
     @property
     def is_rules(self) -> bool:
         """The rule-based captioners: no model, the same answers in every mode, no cassette needed."""
-        return self.kind == "reference"
+        return not kind_spec(self.kind).needs_cassette
 
     @property
     def tiny_family(self) -> str | None:
