@@ -16,7 +16,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "vlmproprio"
 # Stage of every module (dotted, relative to vlmproprio); a module may import its own stage or earlier ones.
 STAGES: list[tuple[str, ...]] = [
     ("errors", "secrets", "io", "json_text", "parallel", "stores", "locations", "digests", "options", "schemas"),
-    ("primitives", "episodes", "chat", "models"),
+    ("primitives", "episodes", "chat", "kinds", "models"),
     ("summary", "record"),
     ("conditions",),
     ("prompts",),
@@ -200,18 +200,59 @@ def test_no_function_is_longer_than_80_lines() -> None:
     assert not long, "split these into named steps: " + ", ".join(long)
 
 
-# what a model name's syntax is made of: only vlmproprio.models reads it
-MODEL_NAME_SYNTAX = ("HF_PREFIX", "OPENAI_PREFIX", "TINY_PREFIX", '"hf:"', '"openai:"', '"tiny:"', "_check_name")
+# what a model name's syntax is made of: only vlmproprio.models reads it, and a prefix is spelled once, in the
+# KindSpec its backend module registers (vlmproprio.kinds)
+MODEL_NAME_SYNTAX = ("TINY_PREFIX", '"tiny:"', "_check_name")
+
+
+def _kind_prefixes() -> set[str]:
+    from vlmproprio.kinds import kind_specs
+
+    return {spec.prefix for spec in kind_specs() if spec.prefix}
+
+
+def _declared_prefixes(tree: ast.AST) -> set[int]:
+    """The ``prefix=`` constants of KindSpec(...) calls: where a prefix may be spelled."""
+    return {
+        id(kw.value)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Call) and ast.unparse(node.func).endswith("KindSpec")
+        for kw in node.keywords
+        if kw.arg == "prefix"
+    }
+
+
+def _spelled_prefixes(path: Path, prefixes: set[str]) -> list[int]:
+    tree = ast.parse(path.read_text())
+    declared = _declared_prefixes(tree)
+    return [
+        node.lineno
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Constant) and node.value in prefixes and id(node) not in declared
+    ]
 
 
 def test_a_model_name_is_parsed_in_one_place() -> None:
+    prefixes = _kind_prefixes()
+    assert {"hf:", "openai:"} <= prefixes
     offenders = []
     for module, path in _modules():
         if module == "models":
             continue
         text = path.read_text()
         offenders += [f"vlmproprio.{module}: {s}" for s in MODEL_NAME_SYNTAX if s in text]
+        offenders += [f"vlmproprio.{module}:{n} a prefix" for n in _spelled_prefixes(path, prefixes)]
     assert not offenders, "parse model names with vlmproprio.models.resolve_model: " + ", ".join(offenders)
+
+
+def test_backends_are_discovered_in_one_place() -> None:
+    """Only vlmproprio.kinds imports modules by name (the stage test cannot see such imports)."""
+    found = [
+        f"vlmproprio.{module}"
+        for module, path in _modules()
+        if module != "kinds" and ("import_module(" in path.read_text() or "__import__(" in path.read_text())
+    ]
+    assert not found, "modules imported by name outside vlmproprio.kinds: " + ", ".join(found)
 
 
 BACKEND_API = {"identity", "generate", "plan_batches", "calls_model", "max_batch_size", "close"}

@@ -41,7 +41,7 @@ def _free_port() -> int:
 @pytest.fixture(scope="module")
 def tiny_llava(tiny_model) -> Path:
     # built in this process (the session's build): what is tested is serving it, not building it in a fresh
-    # process (test_backends_hf checks that, through the CLI); ensure_tiny_model verifies its files on every use
+    # process (tests/backends/test_hf.py checks that, through the CLI); ensure_tiny_model verifies its files on every use
     return tiny_model("llava")
 
 

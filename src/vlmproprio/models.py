@@ -6,6 +6,9 @@ A model is named three ways:
 * ``hf:<local folder or Hugging Face repo id>``: any transformers VLM, offline;
 * ``openai:<model name>``: any model behind an OpenAI-compatible server (``--base-url`` for vLLM, SGLang).
 
+A prefix belongs to the backend module that declares its kind (vlmproprio.kinds): the registry's short names
+are here, every ``<prefix><weights>`` form is read from the kinds.
+
 :func:`resolve_model` is the one place a name is parsed: it checks the name and returns a
 :class:`ModelRef` (name, folder-safe slug, backend kind, weights, default answer length) that everything
 downstream passes around instead of the string. Which backend answers for a reference, and whether it can
@@ -21,9 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vlmproprio.errors import UsageError
+from vlmproprio.kinds import kind_spec, kind_specs
 
-HF_PREFIX = "hf:"
-OPENAI_PREFIX = "openai:"
 TINY_PREFIX = "tiny:"
 STATE_RULES = "state-aware rules, NOT a VLM"  # the "weights" of `reference-state`, as `vlmproprio models` shows them
 DEFAULT_CASSETTE_DIR = Path("fixtures") / "responses"
@@ -42,7 +44,7 @@ class ModelRef:
 
     name: str  # as the user wrote it (run.json, messages)
     slug: str  # one safe path component: transcripts/<slug>/, responses/<slug>.jsonl, baselines
-    kind: str  # "hf" | "openai" | "reference"
+    kind: str  # a backend kind (vlmproprio.kinds): "hf" | "openai" | "reference" | ...
     weights: str  # HF repo id or folder | OpenAI model name | "tiny:<family>" | "" or STATE_RULES (reference)
     description: str
     # default answer length; tiny random models write gibberish to the limit, so theirs is short
@@ -51,7 +53,7 @@ class ModelRef:
     @property
     def is_rules(self) -> bool:
         """The rule-based captioners: no model, the same answers in every mode, no cassette needed."""
-        return self.kind == "reference"
+        return not kind_spec(self.kind).needs_cassette
 
     @property
     def tiny_family(self) -> str | None:
@@ -143,28 +145,19 @@ def _sanitise(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9._-]+", "_", text).strip("._-")
 
 
-def _slug(name: str, kind: str, weights: str) -> str:
-    """One safe path component for an ``hf:``/``openai:`` name.
+def file_slug(name: str, kind: str, full: str, readable: str, lossless: bool) -> str:
+    """One safe path component for a ``<kind>:<full>`` name: ``<kind>_`` and the sanitised ``readable`` part.
 
     The readable part can lose information (``openai:org/m`` and ``openai:org_m``; ``hf:…/run1/checkpoint-500``
-    and ``hf:…/run2/checkpoint-500``; upper case on a case-insensitive disk): then the slug ends in ``-`` and 8
-    hex digits of the sha256 of the full name, so two names never share a transcripts folder or a cassette. A
-    name kept whole gets no suffix (``openai:gpt-4o``), so existing folders, cassettes and baselines keep their
-    names."""
-    if kind == "hf":
-        w = weights.rstrip("/")
-        # a folder is named by its last part (its absolute path differs between machines), a repo id in full
-        looks_like_path = w.startswith(("/", ".", "~")) or w.count("/") > 1
-        readable = w.rsplit("/", 1)[-1] if looks_like_path else w
-        slug, lossless = "hf_" + _sanitise(readable), not looks_like_path
-    else:
-        w = readable = weights
-        slug, lossless = "openai_" + _sanitise(readable), True
+    and ``hf:…/run2/checkpoint-500``; upper case on a case-insensitive disk): then (or when the caller says it
+    is not ``lossless``) the slug ends in ``-`` and 8 hex digits of the sha256 of the full name, so two names
+    never share a transcripts folder or a cassette. A name kept whole gets no suffix (``openai:gpt-4o``), so
+    existing folders, cassettes and baselines keep their names."""
+    slug = f"{kind}_{_sanitise(readable)}"
     lossless = lossless and _sanitise(readable) == readable and readable == readable.lower()
     if not lossless or _DIGEST_TAIL.search(slug):
-        full = f"{kind}:{w}"
-        slug = f"{slug[:110]}-{hashlib.sha256(full.encode('utf-8')).hexdigest()[:8]}"
-    if not _SLUG_RE.match(slug) or ".." in slug or slug.split("-")[0].rstrip("_") in ("hf", "openai"):
+        slug = f"{slug[:110]}-{hashlib.sha256(f'{kind}:{full}'.encode()).hexdigest()[:8]}"
+    if not _SLUG_RE.match(slug) or ".." in slug or slug.split("-")[0].rstrip("_") == kind:
         raise ModelNameError(f"model name {name!r} gives no usable file name ({slug!r})")
     return slug
 
@@ -174,15 +167,16 @@ def _resolve(name: str) -> ModelRef:
     _check_name(name)
     if name in REGISTRY:
         return REGISTRY[name]
-    for prefix, kind in ((HF_PREFIX, "hf"), (OPENAI_PREFIX, "openai")):
-        if name.startswith(prefix):
-            rest = name[len(prefix) :].strip()
+    prefixed = [spec for spec in kind_specs() if spec.prefix]
+    for spec in prefixed:
+        if name.startswith(spec.prefix):
+            rest = name[len(spec.prefix) :].strip()
             if not rest:
-                raise ModelNameError(f"{name!r}: nothing after {prefix!r}")
-            label = "transformers" if kind == "hf" else "OpenAI API"
-            return ModelRef(name, _slug(name, kind, rest), kind, rest, f"{rest} ({label})")
+                raise ModelNameError(f"{name!r}: nothing after {spec.prefix!r}")
+            return ModelRef(name, spec.slug(name, rest), spec.kind, rest, f"{rest} ({spec.label})")
     known = ", ".join(REGISTRY)
-    raise ModelNameError(f"unknown model {name!r}. Known: {known}; or hf:<folder or HF repo id>, openai:<model name>")
+    forms = ", ".join(spec.syntax for spec in prefixed)
+    raise ModelNameError(f"unknown model {name!r}. Known: {known}; or {forms}")
 
 
 def resolve_model(model: str | ModelRef) -> ModelRef:

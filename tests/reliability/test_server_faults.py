@@ -12,7 +12,7 @@ against the loopback server in this process.
   against a healthy server asks only for the rest and ends with the fault-free transcripts.
 
 Per-fault behaviour of the backend alone (every fault kind transient and persistent, bounded concurrency,
-request format) is tested in tests/test_backends_openai.py.
+request format) is tested in tests/backends/test_openai.py.
 
 The CLI runs in this process (``cli_in_process``; what is checked is the run's outcome and its one error
 line, not the process) and the backoff between retries is a tenth of the SDK's (``scaled_retry_backoff``):

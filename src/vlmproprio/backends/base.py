@@ -11,10 +11,22 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 from vlmproprio.backends.scheduling import contiguous_batches
 from vlmproprio.chat import Answer, ChatRequest
 from vlmproprio.errors import VlmproprioError
+
+
+@dataclass(frozen=True)
+class Availability:
+    """Whether a model can run here, and why (or why not): what a backend kind's ``live`` check returns."""
+
+    available: bool
+    reason: str
+
+    def __bool__(self) -> bool:
+        return self.available
 
 
 class BackendError(VlmproprioError):

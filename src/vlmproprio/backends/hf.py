@@ -6,11 +6,6 @@ temperature 0). dtype, device (``cpu``, ``cuda``, or ``auto`` = accelerate's
 device map) and the attention implementation are explicit settings; dtype and
 attention enter the cache key because they change the scores.
 
-Weights revision: the snapshot commit hash when the weights come from the HF
-cache, else ``sha256:<hex>`` over the weight files (``*.safetensors``,
-``*.bin``, by relative path), so a local folder, such as a tiny test model,
-gets the same revision on every machine.
-
 Batching: ``plan_batches`` groups the requests it is given by shape (prompt
 length with image tokens, number of images; see vlmproprio.backends.scheduling)
 into batches of ``max_batch_size`` rows and at most ``max_batch_tokens`` padded
@@ -33,38 +28,35 @@ compile; for tests), ``False`` never. Neither the cache kind nor the batch size
 enters the cache key: like the device, they are how an answer was computed,
 recorded in ``AnswerMeta.extra``.
 
-Without torchvision (it cannot be installed next to the CPU torch used here),
-``AutoProcessor`` fails for processors that also declare a video processor
-(Qwen2-VL, Qwen2.5-VL, LLaVA-OneVision). The fallback loads the same processor
-class without its video part: a local subclass whose sub-processor list leaves
-``video_processor`` out, loaded with the ordinary ``from_pretrained``. Nothing
-in transformers is patched. Images work exactly as with AutoProcessor; videos
-are not supported (vlmproprio sends none).
+Weights and the processor come from vlmproprio.backends.hf_files.
 """
 
 from __future__ import annotations
 
-import functools
-import hashlib
 import io
 import json
 import os
 import re
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
-from vlmproprio.backends.base import Backend, BackendError
+from vlmproprio.backends.base import Availability, Backend, BackendError
+from vlmproprio.backends.hf_files import hf_weights_available, load_processor, resolve_weights
 from vlmproprio.backends.hf_tokens import PromptTokenCounter
 from vlmproprio.backends.scheduling import RequestShape, plan_batches, round_up
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart
-from vlmproprio.episodes import sha256_file
+from vlmproprio.kinds import KindOption, KindSpec, register_kind
+from vlmproprio.models import ModelRef, file_slug
+
+if TYPE_CHECKING:
+    from vlmproprio.backends.settings import BackendSettings
 
 DEVICES = ("cpu", "cuda", "auto")
 DTYPES = ("auto", "float32", "bfloat16", "float16")
 ATTN_IMPLEMENTATIONS = ("eager", "sdpa", "flash_attention_2", "flash_attention_3", "flex_attention")
-WEIGHT_SUFFIXES = (".safetensors", ".bin")
 # Static caches are sized in steps of this many tokens: few shapes, so few recompilations of the decode step.
 DEFAULT_CACHE_BUCKET = 256
 # Default cap on a CPU batch's rows x longest prompt. On a CPU a padded batch is no faster than its rows one by
@@ -84,131 +76,6 @@ PURE_GREEDY: dict = dict(
     top_k=None,
     top_p=1.0,
 )
-_SNAPSHOT_RE = re.compile(r"models--(?P<org>[^/]+?)--(?P<name>[^/]+)/snapshots/(?P<commit>[0-9a-f]{40})/?$")
-_HF_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*(/[A-Za-z0-9][A-Za-z0-9._-]*)?$")
-
-
-@dataclass(frozen=True)
-class ResolvedWeights:
-    path: Path
-    model_id: str
-    revision: str
-    source: str  # "hf-cache" | "local"
-
-
-def weights_sha256(folder: Path) -> str:
-    """sha256 over (relative path, sha256 of the bytes) of every weight file in ``folder``."""
-    files = sorted(p for p in Path(folder).rglob("*") if p.is_file() and p.name.endswith(WEIGHT_SUFFIXES))
-    if not files:
-        raise BackendError(f"{folder}: no weight files (*.safetensors or *.bin)")
-    h = hashlib.sha256()
-    for p in files:
-        h.update(f"{p.relative_to(folder).as_posix()}\0{sha256_file(p)}\n".encode())
-    return "sha256:" + h.hexdigest()
-
-
-def how_to_provide(repo_id: str) -> str:
-    return (
-        f"download it on a machine with network (`hf download {repo_id}`, or "
-        f"`huggingface-cli download {repo_id}`) and copy the Hugging Face cache (~/.cache/huggingface/hub, "
-        "or $HF_HUB_CACHE) here; or, where the Hub is reachable, add --allow-download; or pass a local folder as "
-        "`hf:/path/to/folder`; or, without the model, "
-        "replay its recorded answers (--mode replay with a cassette in fixtures/responses/)"
-    )
-
-
-def resolve_weights(
-    weights: str | Path, model_id: str | None = None, *, allow_download: bool = False
-) -> ResolvedWeights:
-    """Find weights: a local folder, or an HF repo id in the local HF cache; with ``allow_download`` an id that
-    is not there is fetched from the Hugging Face Hub (when one is reachable)."""
-    text = str(weights)
-    path = Path(text).expanduser()
-    if path.is_dir():
-        path = path.resolve()
-        m = _SNAPSHOT_RE.search(path.as_posix())
-        if m:  # a folder inside the HF cache: the commit hash is the revision
-            return ResolvedWeights(path, model_id or f"{m['org']}/{m['name']}", m["commit"], "hf-cache")
-        return ResolvedWeights(path, model_id or path.name, weights_sha256(path), "local")
-    if text.startswith(("/", ".", "~")) or not _HF_ID_RE.match(text):
-        raise BackendError(f"model folder {text} does not exist")
-    from huggingface_hub import snapshot_download
-    from huggingface_hub.errors import LocalEntryNotFoundError
-
-    try:
-        snap = Path(snapshot_download(text, local_files_only=True))
-    except (LocalEntryNotFoundError, FileNotFoundError, OSError) as exc:
-        if allow_download:
-            return _download_weights(text, model_id)
-        raise BackendError(
-            f"weights for {text} are not in the local Hugging Face cache and downloads are off; " + how_to_provide(text)
-        ) from exc
-    return ResolvedWeights(snap, model_id or text, snap.name, "hf-cache")
-
-
-def _download_weights(repo_id: str, model_id: str | None) -> ResolvedWeights:
-    """The weights of ``repo_id`` fetched from the Hub into the local HF cache (--allow-download)."""
-    from huggingface_hub import snapshot_download
-
-    try:
-        snap = Path(snapshot_download(repo_id))
-    except Exception as exc:  # offline, unknown repo, gated: all say "could not download", with the hub's reason
-        raise BackendError(
-            f"--allow-download: could not download {repo_id} from the Hugging Face Hub "
-            f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); " + how_to_provide(repo_id)
-        ) from exc
-    return ResolvedWeights(snap, model_id or repo_id, snap.name, "hf-cache")
-
-
-def hf_weights_available(weights: str) -> tuple[bool, str]:
-    """Whether ``weights`` (folder or HF id) can be loaded offline, and if not, how to get them."""
-    try:
-        r = resolve_weights(weights)
-    except BackendError as exc:
-        return False, str(exc)
-    return True, f"{r.source}: {r.path}"
-
-
-# ---------------------------------------------------------------------------------------------- processor
-
-
-def _processor_class_name(path: Path) -> str | None:
-    for name in ("processor_config.json", "preprocessor_config.json", "tokenizer_config.json"):
-        try:
-            data = json.loads((path / name).read_text())
-        except (OSError, ValueError):
-            continue
-        if isinstance(data, dict) and isinstance(data.get("processor_class"), str):
-            return data["processor_class"]
-    from transformers import AutoConfig
-    from transformers.models.auto.processing_auto import PROCESSOR_MAPPING_NAMES
-
-    config = AutoConfig.from_pretrained(path, local_files_only=True)
-    return PROCESSOR_MAPPING_NAMES.get(config.model_type)
-
-
-@functools.cache
-def _image_only(processor_cls: type) -> type:
-    """``processor_cls`` without its video processor: ``from_pretrained`` then loads only image + text parts."""
-
-    def get_attributes(cls) -> list[str]:
-        return [a for a in super(sub, cls).get_attributes() if a != "video_processor"]
-
-    sub = type(f"{processor_cls.__name__}ImageOnly", (processor_cls,), {"get_attributes": classmethod(get_attributes)})
-    return sub
-
-
-def load_processor(path: Path):
-    """The model's processor; without torchvision, the same class minus its video processor."""
-    import transformers
-    from transformers import AutoProcessor
-    from transformers.utils import is_torchvision_available
-
-    name = None if is_torchvision_available() else _processor_class_name(path)
-    cls = getattr(transformers, name, None) if name else None
-    if cls is None or "video_processor" not in cls.get_attributes():
-        return AutoProcessor.from_pretrained(path, local_files_only=True), "AutoProcessor"
-    return _image_only(cls).from_pretrained(path, local_files_only=True), f"{name} without video processor"
 
 
 # ---------------------------------------------------------------------------------------------- backend
@@ -518,3 +385,109 @@ def _resolve_dtype(dtype: str, device: str) -> str:
     if torch.cuda.is_available() and torch.cuda.is_bf16_supported():
         return "bfloat16"
     return "float32"
+
+
+# ---------------------------------------------------------------------------------------------- the hf kind
+
+
+@dataclass(frozen=True)
+class HFSettings:
+    """A local transformers model: the keyword arguments of HFBackend a run sets.
+
+    Only ``dtype`` and ``attn_implementation`` change answers (they are in the cache key); the rest is how fast.
+    """
+
+    device: str = "cpu"  # cpu | cuda | cuda:N | auto (accelerate device map)
+    dtype: str = "auto"  # auto (float32 on CPU, bfloat16 on GPU) | float32 | bfloat16 | float16
+    attn_implementation: str = "sdpa"  # eager | sdpa | flash_attention_2 | ...
+    max_batch_size: int = 8  # requests per generate() call
+    threads: int | None = None  # torch threads (pin to 1 for bit-identical CPU runs)
+    static_cache: bool = False  # static KV cache per batch, decode step compiled on a GPU (not in the cache key)
+    max_batch_tokens: int | None = None  # cap on rows x longest prompt per batch (None: 16384 on a CPU, else none)
+    allow_download: bool = False  # fetch missing weights from the Hugging Face Hub (off: local files only)
+
+
+def hf_slug(name: str, weights: str) -> str:
+    """A folder is named by its last part (its absolute path differs between machines), a repo id in full."""
+    w = weights.rstrip("/")
+    looks_like_path = w.startswith(("/", ".", "~")) or w.count("/") > 1
+    readable = w.rsplit("/", 1)[-1] if looks_like_path else w
+    return file_slug(name, "hf", w, readable, lossless=not looks_like_path)
+
+
+def _create_hf(ref: ModelRef, settings: BackendSettings) -> Backend:
+    weights, model_id = ref.weights, None
+    if ref.tiny_family:
+        from vlmproprio.backends.tiny import ensure_tiny_model
+
+        weights, model_id = str(ensure_tiny_model(ref.tiny_family, settings.home)), ref.name
+    return HFBackend(weights, model_id=model_id, **asdict(settings.for_kind("hf")))
+
+
+def _missing_modules(*names: str) -> list[str]:
+    import importlib.util
+
+    return [n for n in names if importlib.util.find_spec(n) is None]
+
+
+def _hf_live(ref: ModelRef, settings: BackendSettings) -> Availability:
+    if missing := _missing_modules("torch", "transformers"):
+        return Availability(False, f"needs {', '.join(missing)}: pip install 'vlmproprio[hf]'")
+    if ref.tiny_family:
+        return Availability(True, "tiny model, built locally on first use")
+    ok, why = hf_weights_available(ref.weights)
+    allow_download = settings.for_kind("hf").allow_download
+    if not ok and allow_download and "/" in ref.weights and not ref.weights.startswith(("/", ".")):
+        return Availability(True, f"{ref.weights} will be downloaded from the Hugging Face Hub (--allow-download)")
+    return Availability(ok, why)
+
+
+_HF_OPTIONS = (
+    KindOption(
+        "--allow-download",
+        "allow_download",
+        {
+            "run": "fetch missing hf: weights from the Hugging Face Hub when it is reachable (default: local files only)",
+            "models": "count hf: weights on the Hub as available",
+        },
+        action="store_true",
+    ),
+    KindOption("--device", "device", {"run": "cpu | cuda | cuda:N | auto (default cpu)"}, default="cpu"),
+    KindOption("--dtype", "dtype", {"run": "auto | float32 | bfloat16 | float16 (default auto)"}, default="auto"),
+    KindOption(
+        "--attn",
+        "attn_implementation",
+        {"run": "attention implementation: eager | sdpa | flash_attention_2"},
+        default="sdpa",
+    ),
+    KindOption("--batch-size", "max_batch_size", {"run": "requests per generate() call (default 8)"}, int, 8),
+    KindOption("--threads", "threads", {"run": "torch threads (pin to 1 for bit-identical CPU runs)"}, int),
+    KindOption("--judge-threads", "threads", {"score": "torch threads of a local judge (default 1)"}, int, 1),
+    KindOption(
+        "--batch-tokens",
+        "max_batch_tokens",
+        {"run": "cap on a batch's rows x longest prompt, in tokens (default: 16384 on a CPU, none on a GPU)"},
+        int,
+    ),
+    KindOption(
+        "--static-cache",
+        "static_cache",
+        {"run": "static KV cache; on a GPU the decode step is compiled (first batches pay ~1 min; pays on long runs)"},
+        action="store_true",
+    ),
+)
+
+register_kind(
+    KindSpec(
+        kind="hf",
+        create=_create_hf,
+        live=_hf_live,
+        prefix="hf:",
+        syntax="hf:<folder or HF repo id>",
+        label="transformers",
+        slug=hf_slug,
+        settings_type=HFSettings,
+        options=_HF_OPTIONS,
+        option_group="local models (hf)",
+    )
+)

@@ -30,10 +30,16 @@ import threading
 import time
 from collections.abc import Sequence
 from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING
 
-from vlmproprio.backends.base import Backend, BackendError
-from vlmproprio.backends.settings import OpenAISettings
+from vlmproprio.backends.base import Availability, Backend, BackendError
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart, valid_unicode
+from vlmproprio.kinds import KindOption, KindSpec, register_kind
+from vlmproprio.models import ModelRef, file_slug
+
+if TYPE_CHECKING:
+    from vlmproprio.backends.settings import BackendSettings
 
 log = logging.getLogger(__name__)
 
@@ -292,3 +298,73 @@ def _error_detail(exc) -> str:
         if isinstance(msg, str):
             return msg[:300]
     return str(getattr(exc, "message", "") or exc)[:300]
+
+
+# ---------------------------------------------------------------------------------------------- the openai kind
+
+
+@dataclass(frozen=True)
+class OpenAISettings:
+    """A model behind an OpenAI-compatible server: the keyword arguments of OpenAIBackend a run sets."""
+
+    base_url: str | None = None  # server URL, e.g. http://127.0.0.1:8000/v1 for vLLM
+    api_key_env: str = DEFAULT_KEY_ENV  # the environment variable holding the key
+    concurrency: int = 4  # requests in flight
+    timeout_s: float = 120.0  # per request
+    max_retries: int = 4  # retries on 429 / 5xx / timeouts / connection errors / malformed JSON
+
+
+def openai_slug(name: str, weights: str) -> str:
+    """A served model's name is kept whole (with a digest where sanitising it loses information)."""
+    return file_slug(name, "openai", weights, weights, lossless=True)
+
+
+def _create_openai(ref: ModelRef, settings: BackendSettings) -> Backend:
+    return OpenAIBackend(ref.weights, **asdict(settings.for_kind("openai")))
+
+
+def _openai_live(ref: ModelRef, settings: BackendSettings) -> Availability:
+    import importlib.util
+
+    if importlib.util.find_spec("openai") is None:
+        return Availability(False, "needs the openai SDK: pip install 'vlmproprio[openai]'")
+    oa = settings.for_kind("openai")
+    if os.environ.get(oa.api_key_env) or oa.base_url:
+        return Availability(True, f"OpenAI-compatible server {oa.base_url or '(OpenAI API)'}")
+    return Availability(False, f"set ${oa.api_key_env} (OpenAI API) or a --base-url of an OpenAI-compatible server")
+
+
+_OPENAI_OPTIONS = (
+    KindOption(
+        "--base-url",
+        "base_url",
+        {
+            "run": "server URL, e.g. http://127.0.0.1:8000/v1 for vLLM (default: OpenAI)",
+            "models": "OpenAI-compatible server the openai models would use",
+            "score": "OpenAI-compatible server URL for an openai: judge",
+        },
+    ),
+    KindOption(
+        "--api-key-env",
+        "api_key_env",
+        dict.fromkeys(("run", "models", "score"), "environment variable holding the key"),
+        default=DEFAULT_KEY_ENV,
+    ),
+    KindOption("--concurrency", "concurrency", {"run": "requests in flight (default 4)"}, int, 4),
+    KindOption("--timeout", "timeout_s", {"run": "seconds per request (default 120)"}, float, 120.0),
+)
+
+register_kind(
+    KindSpec(
+        kind="openai",
+        create=_create_openai,
+        live=_openai_live,
+        prefix="openai:",
+        syntax="openai:<model name>",
+        label="OpenAI API",
+        slug=openai_slug,
+        settings_type=OpenAISettings,
+        options=_OPENAI_OPTIONS,
+        option_group="OpenAI-compatible servers (openai)",
+    )
+)

@@ -28,11 +28,17 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
+from typing import TYPE_CHECKING
 
-from vlmproprio.backends.base import Backend, BackendError
+from vlmproprio.backends.base import Availability, Backend, BackendError
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, TextPart
+from vlmproprio.kinds import KindSpec, register_kind
+from vlmproprio.models import STATE_RULES, ModelRef
 from vlmproprio.primitives import direction_words, gripper_word
 from vlmproprio.prompts.state import ParsedState, parse_state_lines
+
+if TYPE_CHECKING:
+    from vlmproprio.backends.settings import BackendSettings
 
 RULES_VERSION = "primitives-rules-1"
 MODEL_ID = "reference-primitives"
@@ -307,3 +313,22 @@ class ReferenceBackend(Backend):
             )
             out.append(Answer(text=text, meta=meta))
         return out
+
+
+# ---------------------------------------------------------------------------------------------- the reference kind
+
+
+def _create_rules(ref: ModelRef, settings: BackendSettings) -> Backend:
+    if ref.weights == STATE_RULES:
+        from vlmproprio.backends.reference_state import ReferenceStateBackend
+
+        return ReferenceStateBackend()
+    return ReferenceBackend()
+
+
+def _rules_live(ref: ModelRef, settings: BackendSettings) -> Availability:
+    return Availability(True, "rule-based reference captioner (no model, always available)")
+
+
+# only the registry's short names (reference, reference-state): no prefix, no settings, no cassette
+register_kind(KindSpec(kind="reference", create=_create_rules, live=_rules_live, needs_cassette=False))

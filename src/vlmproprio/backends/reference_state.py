@@ -15,7 +15,7 @@ request tag):
 
 What it knows beforehand, as a person who was told the task and shown the scene would (``SCENES``): the
 object and the action of each scene, and the layout in the robot's frame. robosuite's defaults, documented
-in ``vlmproprio.record.scenes`` and checked against the fixtures by tests/test_backends_reference_state.py:
+in ``vlmproprio.record.scenes`` and checked against the fixtures by tests/backends/test_reference_state.py:
 the Panda's base position per arena, and for pick-and-place the target bin centred at x = 0.10 m,
 y = 0.28 m (world frame) with its four compartments split at that centre (x below it: near the robot;
 y above it: the robot's left, away from the source bin at y = -0.25 m). With joint angles only, the hand

@@ -1,7 +1,8 @@
 """Model references → backends: one dispatch table.
 
-``KINDS`` maps a backend kind (``ModelRef.kind``: hf, openai, reference) to how to build its backend and how
-to tell, without building anything heavy, whether it can run live here. ``create_backend`` and
+``KINDS`` maps a backend kind (``ModelRef.kind``: hf, openai, reference, ...) to its KindSpec, which its
+backend module registers (vlmproprio.kinds): how to build its backend and how to tell, without building
+anything heavy, whether it can run live here. ``create_backend`` and
 ``model_availability`` both read it; a model with a cassette is answered by ``ReplayBackend`` in replay mode
 whatever its kind, except the rule-based captioners, which need no cassette.
 
@@ -10,23 +11,19 @@ This module imports no heavy library: backends import theirs when they are built
 
 from __future__ import annotations
 
-import importlib.util
-import os
-from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from collections.abc import Iterator, Mapping
 
-from vlmproprio.backends.base import Backend, BackendError
-from vlmproprio.backends.settings import BackendSettings, HFSettings, OpenAISettings
+from vlmproprio.backends.base import Availability, Backend, BackendError
+from vlmproprio.backends.settings import BackendSettings
 from vlmproprio.errors import UsageError
-from vlmproprio.models import REGISTRY, STATE_RULES, ModelRef, resolve_model
+from vlmproprio.kinds import KindSpec, kind_spec, kind_specs
+from vlmproprio.models import REGISTRY, ModelRef, resolve_model
 from vlmproprio.options import ANSWER_MODES, AUTO_MODE
 
 __all__ = [
     "KINDS",
     "Availability",
     "BackendSettings",
-    "HFSettings",
-    "OpenAISettings",
     "create_backend",
     "format_availability",
     "model_availability",
@@ -35,86 +32,20 @@ __all__ = [
 ]
 
 
-@dataclass(frozen=True)
-class Availability:
-    available: bool
-    reason: str
+class _Kinds(Mapping[str, KindSpec]):
+    """The backend kinds by name, read from their registrations each time (a kind registered later is seen)."""
 
-    def __bool__(self) -> bool:
-        return self.available
+    def __getitem__(self, kind: str) -> KindSpec:
+        return kind_spec(kind)
 
+    def __iter__(self) -> Iterator[str]:
+        return iter([spec.kind for spec in kind_specs()])
 
-@dataclass(frozen=True)
-class BackendKind:
-    """How one kind of model is built and whether it can run live here (cheaply: no weights are loaded)."""
-
-    create: Callable[[ModelRef, BackendSettings], Backend]
-    live: Callable[[ModelRef, BackendSettings], Availability]
-    needs_cassette: bool = True  # False: rule-based, answers the same in every mode without a cassette
+    def __len__(self) -> int:
+        return len(kind_specs())
 
 
-def _missing_modules(*names: str) -> list[str]:
-    return [n for n in names if importlib.util.find_spec(n) is None]
-
-
-def _create_rules(ref: ModelRef, settings: BackendSettings) -> Backend:
-    if ref.weights == STATE_RULES:
-        from vlmproprio.backends.reference_state import ReferenceStateBackend
-
-        return ReferenceStateBackend()
-    from vlmproprio.backends.reference import ReferenceBackend
-
-    return ReferenceBackend()
-
-
-def _rules_live(ref: ModelRef, settings: BackendSettings) -> Availability:
-    return Availability(True, "rule-based reference captioner (no model, always available)")
-
-
-def _create_hf(ref: ModelRef, settings: BackendSettings) -> Backend:
-    from vlmproprio.backends.hf import HFBackend
-
-    weights, model_id = ref.weights, None
-    if ref.tiny_family:
-        from vlmproprio.backends.tiny import ensure_tiny_model
-
-        weights, model_id = str(ensure_tiny_model(ref.tiny_family, settings.home)), ref.name
-    return HFBackend(weights, model_id=model_id, **asdict(settings.hf))
-
-
-def _hf_live(ref: ModelRef, settings: BackendSettings) -> Availability:
-    if missing := _missing_modules("torch", "transformers"):
-        return Availability(False, f"needs {', '.join(missing)}: pip install 'vlmproprio[hf]'")
-    if ref.tiny_family:
-        return Availability(True, "tiny model, built locally on first use")
-    from vlmproprio.backends.hf import hf_weights_available
-
-    ok, why = hf_weights_available(ref.weights)
-    if not ok and settings.hf.allow_download and "/" in ref.weights and not ref.weights.startswith(("/", ".")):
-        return Availability(True, f"{ref.weights} will be downloaded from the Hugging Face Hub (--allow-download)")
-    return Availability(ok, why)
-
-
-def _create_openai(ref: ModelRef, settings: BackendSettings) -> Backend:
-    from vlmproprio.backends.openai import OpenAIBackend
-
-    return OpenAIBackend(ref.weights, **asdict(settings.openai))
-
-
-def _openai_live(ref: ModelRef, settings: BackendSettings) -> Availability:
-    if _missing_modules("openai"):
-        return Availability(False, "needs the openai SDK: pip install 'vlmproprio[openai]'")
-    oa = settings.openai
-    if os.environ.get(oa.api_key_env) or oa.base_url:
-        return Availability(True, f"OpenAI-compatible server {oa.base_url or '(OpenAI API)'}")
-    return Availability(False, f"set ${oa.api_key_env} (OpenAI API) or a --base-url of an OpenAI-compatible server")
-
-
-KINDS: dict[str, BackendKind] = {
-    "reference": BackendKind(_create_rules, _rules_live, needs_cassette=False),
-    "hf": BackendKind(_create_hf, _hf_live),
-    "openai": BackendKind(_create_openai, _openai_live),
-}
+KINDS: Mapping[str, KindSpec] = _Kinds()
 
 
 def record_hint(ref: ModelRef) -> str:

@@ -1,55 +1,50 @@
-"""How to run a model: one settings type per backend kind, and the bundle a run carries.
+"""How to run a model: the bundle of per-kind settings a run carries.
 
-Each backend takes its own settings as keyword arguments of the same names (``HFBackend(weights,
-**asdict(settings.hf))``), so a setting is spelled once here, not again in every layer. Only ``dtype`` and
-``attn_implementation`` change answers (they are in the cache key); everything else is how fast.
+Each backend kind declares its own settings type in its module (vlmproprio.kinds: ``KindSpec.settings_type``),
+and its backend takes those settings as keyword arguments of the same names (``HFBackend(weights,
+**asdict(settings.hf))``), so a setting is spelled once, in the module that uses it, not again in every layer.
 """
 
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
+from typing import Any
 
+from vlmproprio.kinds import kind_spec, kind_specs
 from vlmproprio.models import DEFAULT_CASSETTE_DIR
 
-
-@dataclass(frozen=True)
-class HFSettings:
-    """A local transformers model (vlmproprio.backends.hf)."""
-
-    device: str = "cpu"  # cpu | cuda | cuda:N | auto (accelerate device map)
-    dtype: str = "auto"  # auto (float32 on CPU, bfloat16 on GPU) | float32 | bfloat16 | float16
-    attn_implementation: str = "sdpa"  # eager | sdpa | flash_attention_2 | ...
-    max_batch_size: int = 8  # requests per generate() call
-    threads: int | None = None  # torch threads (pin to 1 for bit-identical CPU runs)
-    static_cache: bool = False  # static KV cache per batch, decode step compiled on a GPU (not in the cache key)
-    max_batch_tokens: int | None = None  # cap on rows x longest prompt per batch (None: 16384 on a CPU, else none)
-    allow_download: bool = False  # fetch missing weights from the Hugging Face Hub (off: local files only)
+_OWN = ("cassette_dir", "home")
 
 
-@dataclass(frozen=True)
-class OpenAISettings:
-    """A model behind an OpenAI-compatible server (vlmproprio.backends.openai)."""
-
-    base_url: str | None = None  # server URL, e.g. http://127.0.0.1:8000/v1 for vLLM
-    api_key_env: str = "OPENAI_API_KEY"  # the environment variable holding the key
-    concurrency: int = 4  # requests in flight
-    timeout_s: float = 120.0  # per request
-    max_retries: int = 4  # retries on 429 / 5xx / timeouts / connection errors / malformed JSON
+def _kinds_with_settings() -> list:
+    return [spec for spec in kind_specs() if spec.settings_type is not None]
 
 
-_HF_FIELDS = frozenset(f.name for f in fields(HFSettings))
-_OPENAI_FIELDS = frozenset(f.name for f in fields(OpenAISettings))
+def _default_per_kind() -> tuple[tuple[str, Any], ...]:
+    return tuple((spec.kind, spec.settings_type()) for spec in _kinds_with_settings())
 
 
 @dataclass(frozen=True)
 class BackendSettings:
-    """Everything a run says about how to run its models."""
+    """Everything a run says about how to run its models; ``settings.hf`` is ``settings.for_kind("hf")``."""
 
-    hf: HFSettings = field(default_factory=HFSettings)
-    openai: OpenAISettings = field(default_factory=OpenAISettings)
     cassette_dir: Path = DEFAULT_CASSETTE_DIR  # replay: where <slug>.jsonl cassettes live
     home: Path | None = None  # cache root where tiny models are built in models/ (None: locations.cache_root())
+    per_kind: tuple[tuple[str, Any], ...] = field(default_factory=_default_per_kind)  # (kind, its settings)
+
+    def for_kind(self, kind: str) -> Any:
+        """The settings of one backend kind (its defaults when these settings were made before it registered)."""
+        for name, settings in self.per_kind:
+            if name == kind:
+                return settings
+        return kind_spec(kind).settings_type()
+
+    def __getattr__(self, name: str) -> Any:
+        # only called for names that are not attributes: a kind's name reads its settings
+        if name.startswith("_") or name not in {spec.kind for spec in _kinds_with_settings()}:
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        return self.for_kind(name)
 
     @classmethod
     def of(cls, **options) -> BackendSettings:
@@ -59,13 +54,22 @@ class BackendSettings:
 
     def with_options(self, **options) -> BackendSettings:
         """These settings with some flat options changed (see :meth:`of`)."""
-        hf = {k: v for k, v in options.items() if k in _HF_FIELDS}
-        oa = {k: v for k, v in options.items() if k in _OPENAI_FIELDS}
-        own = {k: v for k, v in options.items() if k in ("cassette_dir", "home")}
-        if unknown := set(options) - set(hf) - set(oa) - set(own):
-            raise TypeError(f"unknown backend setting(s): {', '.join(sorted(unknown))}")
-        return replace(self, hf=replace(self.hf, **hf), openai=replace(self.openai, **oa), **own)
+        own = {k: v for k, v in options.items() if k in _OWN}
+        left = set(options) - set(own)
+        per_kind = []
+        for spec in _kinds_with_settings():
+            names = {f.name for f in fields(spec.settings_type)}
+            mine = {k: v for k, v in options.items() if k in names}
+            left -= set(mine)
+            per_kind.append((spec.kind, mine))
+        if left:
+            raise TypeError(f"unknown backend setting(s): {', '.join(sorted(left))}")
+        changed = tuple((kind, replace(self.for_kind(kind), **mine)) for kind, mine in per_kind)
+        return replace(self, per_kind=changed, **own)
 
     def record(self) -> dict:
-        """The settings as run.json records them: flat, without local paths."""
-        return {**asdict(self.hf), **asdict(self.openai)}
+        """The settings as run.json records them: flat, kind after kind, without local paths."""
+        out: dict = {}
+        for spec in _kinds_with_settings():
+            out.update(asdict(self.for_kind(spec.kind)))
+        return out

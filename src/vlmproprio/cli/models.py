@@ -6,7 +6,7 @@ import argparse
 from pathlib import Path
 
 from vlmproprio.cli.arguments import add_fixtures, add_list, command
-from vlmproprio.cli.backend_options import add_server, backend_settings
+from vlmproprio.cli.backend_options import add_kind_options, backend_settings
 from vlmproprio.errors import UsageError
 from vlmproprio.options import split_list
 
@@ -47,8 +47,7 @@ def add_models(sub) -> None:
     p = command(sub, "models", cmd_models)
     add_fixtures(p)
     add_list(p, "--model", "only these models (default: the whole registry); any name --model takes", "NAMES")
-    add_server(p, "OpenAI-compatible server the openai models would use")
-    p.add_argument("--allow-download", action="store_true", help="count hf: weights on the Hub as available")
+    add_kind_options(p, "models", first=("openai",))  # the server options lead, as the help has listed them
     p.add_argument("--plain", action="store_true", help="only the registry table (name, backend, weights)")
 
 

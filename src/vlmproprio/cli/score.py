@@ -16,7 +16,7 @@ from vlmproprio.cli.arguments import (
     cache_root_of,
     command,
 )
-from vlmproprio.cli.backend_options import add_server, backend_settings
+from vlmproprio.cli.backend_options import add_kind_options, backend_settings
 from vlmproprio.options import DEFAULT_MODE, MODE_HELP, MODES, check_range
 
 
@@ -132,5 +132,4 @@ def _add_judge_options(g) -> None:
         default=DEFAULT_MODE,
         help="as `run --mode`: " + MODE_HELP,
     )
-    g.add_argument("--judge-threads", type=int, default=1, help="torch threads of a local judge (default 1)")
-    add_server(g, "OpenAI-compatible server URL for an openai: judge")
+    add_kind_options(g, "score")  # --judge-threads (hf), --base-url and --api-key-env (openai)

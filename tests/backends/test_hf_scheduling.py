@@ -172,7 +172,7 @@ def run_perf_script(name: str, argv: list[str], monkeypatch) -> int:
     import sys
     from pathlib import Path
 
-    perf = Path(__file__).resolve().parents[1] / "perf"
+    perf = Path(__file__).resolve().parents[2] / "perf"
     monkeypatch.syspath_prepend(str(perf))
     monkeypatch.setitem(sys.modules, "_common", None)  # recorded, so the import below is undone afterwards
     del sys.modules["_common"]
@@ -215,7 +215,7 @@ def pipeline_prompts(episode_ids: tuple[str, ...]) -> list:
     from vlmproprio.episodes import load_episodes
     from vlmproprio.pipeline import caption_episodes
 
-    fixtures = Path(__file__).resolve().parents[1] / "fixtures"
+    fixtures = Path(__file__).resolve().parents[2] / "fixtures"
     reference, seen = ReferenceBackend(), []
 
     def answer(requests):

@@ -32,7 +32,7 @@ from vlmproprio.pipeline import caption_episodes
 from vlmproprio.prompts.state import format_state_line
 from vlmproprio.scoring import score_caption
 
-FIXTURES = Path(__file__).resolve().parents[1] / "fixtures"
+FIXTURES = Path(__file__).resolve().parents[2] / "fixtures"
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,158 @@
+"""What a local transformers model is loaded from: its weights (a folder, the Hugging Face cache, or the Hub)
+and its processor.
+
+Offline only unless asked: weights come from a local folder or the local Hugging Face cache
+(``local_files_only``); ``allow_download`` fetches a repo id missing from the cache.
+
+Weights revision: the snapshot commit hash when the weights come from the HF
+cache, else ``sha256:<hex>`` over the weight files (``*.safetensors``,
+``*.bin``, by relative path), so a local folder, such as a tiny test model,
+gets the same revision on every machine.
+
+Without torchvision (it cannot be installed next to the CPU torch used here),
+``AutoProcessor`` fails for processors that also declare a video processor
+(Qwen2-VL, Qwen2.5-VL, LLaVA-OneVision). The fallback loads the same processor
+class without its video part: a local subclass whose sub-processor list leaves
+``video_processor`` out, loaded with the ordinary ``from_pretrained``. Nothing
+in transformers is patched. Images work exactly as with AutoProcessor; videos
+are not supported (vlmproprio sends none).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+from vlmproprio.backends.base import BackendError
+from vlmproprio.episodes import sha256_file
+
+WEIGHT_SUFFIXES = (".safetensors", ".bin")
+_SNAPSHOT_RE = re.compile(r"models--(?P<org>[^/]+?)--(?P<name>[^/]+)/snapshots/(?P<commit>[0-9a-f]{40})/?$")
+_HF_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*(/[A-Za-z0-9][A-Za-z0-9._-]*)?$")
+
+
+@dataclass(frozen=True)
+class ResolvedWeights:
+    path: Path
+    model_id: str
+    revision: str
+    source: str  # "hf-cache" | "local"
+
+
+def weights_sha256(folder: Path) -> str:
+    """sha256 over (relative path, sha256 of the bytes) of every weight file in ``folder``."""
+    files = sorted(p for p in Path(folder).rglob("*") if p.is_file() and p.name.endswith(WEIGHT_SUFFIXES))
+    if not files:
+        raise BackendError(f"{folder}: no weight files (*.safetensors or *.bin)")
+    h = hashlib.sha256()
+    for p in files:
+        h.update(f"{p.relative_to(folder).as_posix()}\0{sha256_file(p)}\n".encode())
+    return "sha256:" + h.hexdigest()
+
+
+def how_to_provide(repo_id: str) -> str:
+    return (
+        f"download it on a machine with network (`hf download {repo_id}`, or "
+        f"`huggingface-cli download {repo_id}`) and copy the Hugging Face cache (~/.cache/huggingface/hub, "
+        "or $HF_HUB_CACHE) here; or, where the Hub is reachable, add --allow-download; or pass a local folder as "
+        "`hf:/path/to/folder`; or, without the model, "
+        "replay its recorded answers (--mode replay with a cassette in fixtures/responses/)"
+    )
+
+
+def resolve_weights(
+    weights: str | Path, model_id: str | None = None, *, allow_download: bool = False
+) -> ResolvedWeights:
+    """Find weights: a local folder, or an HF repo id in the local HF cache; with ``allow_download`` an id that
+    is not there is fetched from the Hugging Face Hub (when one is reachable)."""
+    text = str(weights)
+    path = Path(text).expanduser()
+    if path.is_dir():
+        path = path.resolve()
+        m = _SNAPSHOT_RE.search(path.as_posix())
+        if m:  # a folder inside the HF cache: the commit hash is the revision
+            return ResolvedWeights(path, model_id or f"{m['org']}/{m['name']}", m["commit"], "hf-cache")
+        return ResolvedWeights(path, model_id or path.name, weights_sha256(path), "local")
+    if text.startswith(("/", ".", "~")) or not _HF_ID_RE.match(text):
+        raise BackendError(f"model folder {text} does not exist")
+    from huggingface_hub import snapshot_download
+    from huggingface_hub.errors import LocalEntryNotFoundError
+
+    try:
+        snap = Path(snapshot_download(text, local_files_only=True))
+    except (LocalEntryNotFoundError, FileNotFoundError, OSError) as exc:
+        if allow_download:
+            return _download_weights(text, model_id)
+        raise BackendError(
+            f"weights for {text} are not in the local Hugging Face cache and downloads are off; " + how_to_provide(text)
+        ) from exc
+    return ResolvedWeights(snap, model_id or text, snap.name, "hf-cache")
+
+
+def _download_weights(repo_id: str, model_id: str | None) -> ResolvedWeights:
+    """The weights of ``repo_id`` fetched from the Hub into the local HF cache (--allow-download)."""
+    from huggingface_hub import snapshot_download
+
+    try:
+        snap = Path(snapshot_download(repo_id))
+    except Exception as exc:  # offline, unknown repo, gated: all say "could not download", with the hub's reason
+        raise BackendError(
+            f"--allow-download: could not download {repo_id} from the Hugging Face Hub "
+            f"({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}); " + how_to_provide(repo_id)
+        ) from exc
+    return ResolvedWeights(snap, model_id or repo_id, snap.name, "hf-cache")
+
+
+def hf_weights_available(weights: str) -> tuple[bool, str]:
+    """Whether ``weights`` (folder or HF id) can be loaded offline, and if not, how to get them."""
+    try:
+        r = resolve_weights(weights)
+    except BackendError as exc:
+        return False, str(exc)
+    return True, f"{r.source}: {r.path}"
+
+
+# ---------------------------------------------------------------------------------------------- processor
+
+
+def _processor_class_name(path: Path) -> str | None:
+    for name in ("processor_config.json", "preprocessor_config.json", "tokenizer_config.json"):
+        try:
+            data = json.loads((path / name).read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(data, dict) and isinstance(data.get("processor_class"), str):
+            return data["processor_class"]
+    from transformers import AutoConfig
+    from transformers.models.auto.processing_auto import PROCESSOR_MAPPING_NAMES
+
+    config = AutoConfig.from_pretrained(path, local_files_only=True)
+    return PROCESSOR_MAPPING_NAMES.get(config.model_type)
+
+
+@functools.cache
+def _image_only(processor_cls: type) -> type:
+    """``processor_cls`` without its video processor: ``from_pretrained`` then loads only image + text parts."""
+
+    def get_attributes(cls) -> list[str]:
+        return [a for a in super(sub, cls).get_attributes() if a != "video_processor"]
+
+    sub = type(f"{processor_cls.__name__}ImageOnly", (processor_cls,), {"get_attributes": classmethod(get_attributes)})
+    return sub
+
+
+def load_processor(path: Path):
+    """The model's processor; without torchvision, the same class minus its video processor."""
+    import transformers
+    from transformers import AutoProcessor
+    from transformers.utils import is_torchvision_available
+
+    name = None if is_torchvision_available() else _processor_class_name(path)
+    cls = getattr(transformers, name, None) if name else None
+    if cls is None or "video_processor" not in cls.get_attributes():
+        return AutoProcessor.from_pretrained(path, local_files_only=True), "AutoProcessor"
+    return _image_only(cls).from_pretrained(path, local_files_only=True), f"{name} without video processor"
