@@ -179,6 +179,20 @@ def test_a_package_with_all_re_exports_every_public_name_of_its_modules(package:
 
 # ---------------------------------------------------------------------------------------------- shape rules
 
+MAX_MODULE_LINES = 500
+# modules that are data tables (one entry per line), not logic: exempt from the size rule
+DATA_MODULES: set[str] = set()
+
+
+def test_no_module_is_longer_than_500_lines() -> None:
+    long = []
+    for module, path in _modules():
+        lines = len(path.read_text().splitlines())
+        if lines > MAX_MODULE_LINES and module not in DATA_MODULES:
+            long.append(f"vlmproprio.{module} ({lines} lines)")
+    assert not long, "split these by concern: " + ", ".join(long)
+
+
 MAX_FUNCTION_LINES = 80
 # functions that are data tables (one entry per line), not logic: exempt from the length rule
 DATA_TABLES: set[str] = set()
