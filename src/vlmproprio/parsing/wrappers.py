@@ -71,23 +71,37 @@ def strip_fences(text: str) -> tuple[str, tuple[str, ...]]:
     return out, (("fence",) if out != text else ())
 
 
+_DECODER = json.JSONDecoder()
+# Where a JSON answer can start: the first bracket, or one that opens a line. A failed decode may read to the end
+# of the text, so trying every bracket of a long answer would cost its length times its brackets.
+_JSON_START = re.compile(r"^[ \t]*([\[{])", re.M)
+_JSON_TRIES = 8
+_JSON_WITHIN = 2000  # prose with brackets: a JSON answer starts near the top
+
+
 def decode_json(text: str, start: int = 0):
     """The JSON value that starts at ``start`` in ``text``, or None (also for a value too deep to decode)."""
     try:
-        value, _ = json.JSONDecoder().raw_decode(text[start:])
+        value, _ = _DECODER.raw_decode(text, start)
     except (ValueError, RecursionError):
         return None
     return value
 
 
+def _json_starts(text: str) -> list[int]:
+    first = re.search(r"[\[{]", text[:_JSON_WITHIN])
+    starts = {m.start(1) for m in _JSON_START.finditer(text, 0, _JSON_WITHIN)}
+    if first:
+        starts.add(first.start())
+    return sorted(starts)[:_JSON_TRIES]
+
+
 def first_json(text: str):
     """The first JSON array or object in ``text`` that decodes, or None."""
-    for m in re.finditer(r"[\[{]", text):
-        value = decode_json(text, m.start())
+    for start in _json_starts(text):
+        value = decode_json(text, start)
         if isinstance(value, (list, dict)):
             return value
-        if m.start() > 2000:  # prose with brackets: a JSON answer starts near the top
-            break
     return None
 
 
