@@ -7,8 +7,10 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
-from vlmproprio.stats import bootstrap_ci, paired_difference, sign_flip_p
+from vlmproprio.stats import DEFAULT_MAX_EXACT, TIE_RTOL, bootstrap_ci, paired_difference, sign_flip_p
 
 
 def test_all_episodes_improve_by_one():
@@ -66,6 +68,85 @@ def test_monte_carlo_p_is_close_to_exact_and_seeded():
     assert method.startswith("monte-carlo")
     assert abs(mc - exact) < 0.015
     assert sign_flip_p(d, n_perm=20000, seed=1, max_exact=8) == (mc, method)
+
+
+def _enumerated_p(d: np.ndarray) -> float:
+    """The exact branch the suite had before meet in the middle: every one of the 2**n sign patterns as a
+    column, summed left to right, compared with the same tolerance (n <= 16)."""
+    n = len(d)
+    codes = np.arange(1 << n, dtype=np.int64)
+    signs = 1.0 - 2.0 * ((codes[:, None] >> np.arange(n, dtype=np.int64)) & 1)
+    stats = np.zeros(1 << n)
+    obs = 0.0
+    for j in range(n):
+        stats = stats + signs[:, j] * d[j]
+        obs = obs + d[j]
+    obs = abs(obs)
+    tol = TIE_RTOL * max(obs, float(np.abs(d).max()), 1e-300)
+    return int(np.count_nonzero(np.abs(stats) >= obs - tol)) / (1 << n)
+
+
+@pytest.mark.parametrize("n", [1, 2, 5, 9, 10, 12, 15, 16])
+def test_exact_p_equals_the_enumeration_of_every_pattern(n):
+    rng = np.random.default_rng(100 + n)
+    cases = [
+        rng.normal(0.3, 1.0, n),
+        np.round(rng.normal(0.2, 0.5, n), 2),  # many exact ties between patterns
+        rng.integers(-1, 2, n).astype(float),  # a rate: differences in {-1, 0, 1}
+        np.full(n, 0.25),
+    ]
+    for d in cases:
+        got, method = sign_flip_p(d)
+        assert method == "exact sign-flip"
+        assert got == _enumerated_p(d), d.tolist()
+
+
+def _sign_test_p(k: int, j: int) -> float:
+    """Two-sided sign test: k differences of +-1, j of them positive (zeros carry no sign information)."""
+    obs = abs(2 * j - k)
+    return sum(math.comb(k, i) for i in range(k + 1) if abs(2 * i - k) >= obs) / 2**k
+
+
+@pytest.mark.parametrize(("plus", "minus", "zeros"), [(22, 0, 0), (15, 5, 2), (11, 11, 0), (18, 1, 3), (6, 0, 16)])
+def test_pooled_rates_are_exact_below_any_monte_carlo_floor(plus, minus, zeros):
+    """22 pooled episodes: the sign-flip test of a rate is the sign test, exactly (1 / 20 001 was the floor)."""
+    d = np.array([1.0] * plus + [-1.0] * minus + [0.0] * zeros)
+    np.random.default_rng(plus).shuffle(d)
+    p, method = sign_flip_p(d)
+    assert method == "exact sign-flip"
+    assert p == pytest.approx(_sign_test_p(plus + minus, plus), rel=1e-12)
+    if plus == 22:
+        assert p == 2 / 2**22 < 1 / 20001
+
+
+def test_exact_up_to_forty_pairs_then_monte_carlo_with_its_floor():
+    rng = np.random.default_rng(8)
+    d40 = rng.normal(0.0, 1.0, 40)
+    p40, method = sign_flip_p(d40)
+    assert DEFAULT_MAX_EXACT == 40 and method == "exact sign-flip" and 0.0 < p40 <= 1.0
+    d = np.ones(41)
+    p, method = sign_flip_p(d, n_perm=1000)
+    assert method == "monte-carlo sign-flip (1000 patterns, p >= 1/1001)"
+    assert p == 1 / 1001  # no random pattern reaches all-plus: the floor, not the exact 2 / 2**41
+
+
+finite = st.floats(-5.0, 5.0, allow_nan=False, allow_infinity=False, width=32)
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.lists(st.one_of(finite, st.sampled_from([0.0, 0.5, -0.5, 1.0, -1.0])), min_size=1, max_size=14))
+def test_exact_p_properties(values):
+    """Against the enumeration; and what the null distribution guarantees whatever the data: p in (0, 1],
+    p >= 2 / 2**n unless everything is zero, unchanged by negating, reordering or doubling the differences."""
+    d = np.array(values, dtype=np.float64)
+    p, _ = sign_flip_p(d)
+    assert p == _enumerated_p(d)
+    assert 0.0 < p <= 1.0
+    if np.any(d != 0.0):
+        assert p >= 2 / 2 ** len(d)
+    assert sign_flip_p(-d)[0] == p
+    assert sign_flip_p(d[::-1].copy())[0] == pytest.approx(p, abs=1e-12)
+    assert sign_flip_p(2.0 * d)[0] == p
 
 
 def test_bootstrap_ci_is_seeded_and_brackets_the_mean():

@@ -190,6 +190,7 @@ def verdicts(paired: Sequence[Mapping], claims: Claims, models: Iterable[str]) -
                     "ci_high": row.get("ci_high") if row else None,
                     "p_value": row.get("p_value") if row else None,
                     "p_holm": row.get("p_holm") if row else None,
+                    "p_method": row.get("method") if row else None,
                     "alpha": claims.alpha,
                 }
             )
