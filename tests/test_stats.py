@@ -10,7 +10,15 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from vlmproprio.stats import DEFAULT_MAX_EXACT, TIE_RTOL, bootstrap_ci, paired_difference, sign_flip_p
+from vlmproprio.stats import (
+    DEFAULT_MAX_EXACT,
+    TIE_RTOL,
+    binary_difference_bounds,
+    bootstrap_ci,
+    clopper_pearson,
+    paired_difference,
+    sign_flip_p,
+)
 
 
 def test_all_episodes_improve_by_one():
@@ -147,6 +155,61 @@ def test_exact_p_properties(values):
     assert sign_flip_p(-d)[0] == p
     assert sign_flip_p(d[::-1].copy())[0] == pytest.approx(p, abs=1e-12)
     assert sign_flip_p(2.0 * d)[0] == p
+
+
+# ---------------------------------------------------------------------------------------------- exact bounds
+
+
+@pytest.mark.parametrize("n", [1, 5, 10, 12, 22, 60, 1500])
+def test_clopper_pearson_equals_the_beta_quantiles(n):
+    beta = pytest.importorskip("scipy.stats").beta  # an independent implementation of the same quantiles
+    for k in sorted({0, 1, n // 3, n // 2, n - 1, n}):
+        for tail in (0.025, 0.005, 0.2):
+            lo, hi = clopper_pearson(k, n, tail)
+            assert lo == (0.0 if k == 0 else pytest.approx(beta.ppf(tail, k, n - k + 1), rel=1e-9, abs=1e-15))
+            assert hi == (1.0 if k == n else pytest.approx(beta.ppf(1 - tail, k + 1, n - k), rel=1e-9))
+
+
+def test_no_discordant_pair_among_22_leaves_15_points():
+    lo, hi = binary_difference_bounds(0, 0, 22)
+    assert hi == pytest.approx(1 - 0.025 ** (1 / 22), rel=1e-12)  # U(0 of 22) - L(0 of 22) = U - 0
+    assert 0.15 < hi < 0.16 and lo == -hi
+    r = paired_difference([1.0] * 11 + [0.0] * 11, [1.0] * 11 + [0.0] * 11, binary=True)
+    assert (r.ci_low, r.ci_high, r.n_ab, r.n_ba) == (0.0, 0.0, 0, 0)
+    assert (r.exact_low, r.exact_high) == (lo, hi)
+    assert paired_difference([1.0], [0.0]).exact_high is None  # only binary metrics get them
+    with pytest.raises(ValueError, match="0 or 1"):
+        paired_difference([0.5], [0.0], binary=True)
+
+
+def test_exact_bounds_combine_the_beta_quantiles_of_both_discordant_shares():
+    beta = pytest.importorskip("scipy.stats").beta
+    lo, hi = binary_difference_bounds(5, 2, 22)  # 5 episodes right only under A, 2 only under B
+    assert hi == pytest.approx(beta.ppf(0.975, 6, 17) - beta.ppf(0.025, 2, 21), rel=1e-9)
+    assert lo == pytest.approx(beta.ppf(0.025, 5, 18) - beta.ppf(0.975, 3, 20), rel=1e-9)
+    # right under A in all 22, never under B: low = L(22 of 22) - U(0 of 22) = 2 * 0.025**(1/22) - 1
+    assert binary_difference_bounds(22, 0, 22) == pytest.approx((2 * 0.025 ** (1 / 22) - 1, 1.0), rel=1e-12)
+
+
+def _miss_probability(n: int, p_ab: float, p_ba: float, level: float) -> tuple[float, float]:
+    """P(difference > high) and P(difference < low) over every outcome of n pairs (multinomial, exact)."""
+    diff, over, under = p_ab - p_ba, 0.0, 0.0
+    p_same = 1.0 - p_ab - p_ba
+    for i in range(n + 1):
+        for j in range(n + 1 - i):
+            prob = math.comb(n, i) * math.comb(n - i, j) * p_ab**i * p_ba**j * p_same ** (n - i - j)
+            lo, hi = binary_difference_bounds(i, j, n, level)
+            over += prob * (diff > hi)
+            under += prob * (diff < lo)
+    return over, under
+
+
+@pytest.mark.parametrize("n", [6, 13, 22])
+def test_each_exact_bound_misses_at_most_one_minus_level(n):
+    """Each end is a one-sided bound at the level, for every pair of discordant shares (enumerated exactly)."""
+    for p_ab, p_ba in [(0.0, 0.0), (0.05, 0.0), (0.3, 0.1), (0.02, 0.4), (0.5, 0.5), (0.9, 0.05), (0.15, 0.15)]:
+        over, under = _miss_probability(n, p_ab, p_ba, 0.95)
+        assert over <= 0.05 + 1e-12 and under <= 0.05 + 1e-12, (p_ab, p_ba, over, under)
 
 
 def test_bootstrap_ci_is_seeded_and_brackets_the_mean():

@@ -25,10 +25,10 @@ without rescaling the data to integers.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -39,7 +39,7 @@ DEFAULT_MAX_EXACT = 40  # meet in the middle: two halves of 2**20 sums at most, 
 TIE_RTOL = 1e-9
 
 
-@dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True)
 class PairedResult:
     n: int
     mean_a: float
@@ -51,6 +51,11 @@ class PairedResult:
     method: str  # "exact sign-flip" | "monte-carlo sign-flip (N patterns, p >= 1/(N+1))" | "none (n=0)"
     n_boot: int
     seed: int
+    # binary metrics only (``paired_difference(binary=True)``): the discordant pairs and the exact bounds
+    n_ab: int | None = None  # episodes with A = 1, B = 0
+    n_ba: int | None = None  # episodes with A = 0, B = 1
+    exact_low: float | None = None  # exact one-sided lower bound of the difference at ``level``
+    exact_high: float | None = None  # exact one-sided upper bound: the largest effect compatible with the data
 
     def to_dict(self) -> dict:
         # asdict's deep copy of ten scalars cost more than the statistics of small tables; the same dict
@@ -187,6 +192,64 @@ def sign_flip_p(
     return (hits + 1) / (n_perm + 1), monte_carlo_method(n_perm)
 
 
+# ---------------------------------------------------------------------------------------------- exact bounds
+
+
+def _binomial_cdf(k: int, n: int, p: float) -> float:
+    """P(X <= k) for X ~ Binomial(n, p), its terms summed in log space (no overflow for large n)."""
+    if k >= n or p <= 0.0:
+        return 1.0
+    if k < 0 or p >= 1.0:
+        return 0.0
+    logs = [
+        math.lgamma(n + 1) - math.lgamma(i + 1) - math.lgamma(n - i + 1) + i * math.log(p) + (n - i) * math.log1p(-p)
+        for i in range(k + 1)
+    ]
+    top = max(logs)
+    return min(1.0, math.exp(top) * math.fsum(math.exp(x - top) for x in logs))
+
+
+def _bisect_decreasing(f, target: float) -> float:
+    """The p in [0, 1] where the decreasing f(p) crosses target, to the last bit (bisection)."""
+    lo, hi = 0.0, 1.0
+    while True:
+        mid = 0.5 * (lo + hi)
+        if mid in (lo, hi):
+            return hi
+        if f(mid) > target:
+            lo = mid
+        else:
+            hi = mid
+
+
+@functools.lru_cache(maxsize=4096)
+def clopper_pearson(k: int, n: int, tail: float) -> tuple[float, float]:
+    """Exact one-sided bounds (L, U) of a binomial proportion from k successes in n trials, each missing with
+    probability at most ``tail`` (Clopper & Pearson 1934): P(X >= k | L) = tail and P(X <= k | U) = tail, L = 0
+    for k = 0 and U = 1 for k = n. They are the beta quantiles Beta(tail; k, n - k + 1) and
+    Beta(1 - tail; k + 1, n - k), found by bisection on the binomial tail (no scipy in the core install)."""
+    if not 0 <= k <= n or n == 0:
+        raise ValueError(f"need 0 <= k <= n and n > 0, got k = {k}, n = {n}")
+    lower = 0.0 if k == 0 else _bisect_decreasing(lambda p: _binomial_cdf(k - 1, n, p), 1.0 - tail)
+    upper = 1.0 if k == n else _bisect_decreasing(lambda p: _binomial_cdf(k, n, p), tail)
+    return lower, upper
+
+
+def binary_difference_bounds(n_ab: int, n_ba: int, n: int, level: float = 0.95) -> tuple[float, float]:
+    """Exact bounds of the paired difference P(A = 1) - P(B = 1) = P(A=1, B=0) - P(A=0, B=1) of 0/1 outcomes
+    from the discordant pairs: with (L, U) the Clopper-Pearson bounds of each discordant share at tail
+    (1 - level) / 2, high = U(n_ab) - L(n_ba) and low = L(n_ab) - U(n_ba). The difference exceeds high only when
+    one of two bounds fails, so by Bonferroni each end is a one-sided bound at ``level`` (together, an interval
+    covering with probability at least 2 level - 1), whatever the dependence between A and B."""
+    tail = (1.0 - level) / 2.0
+    lab, uab = clopper_pearson(n_ab, n, tail)
+    lba, uba = clopper_pearson(n_ba, n, tail)
+    return max(-1.0, lab - uba), min(1.0, uab - lba)
+
+
+# ---------------------------------------------------------------------------------------------- tests
+
+
 @functools.lru_cache(maxsize=4096)
 def _difference_tests(
     d_bits: bytes, n_boot: int, n_perm: int, seed: int, max_exact: int, level: float
@@ -208,8 +271,12 @@ def paired_difference(
     seed: int = DEFAULT_SEED,
     max_exact: int = DEFAULT_MAX_EXACT,
     level: float = 0.95,
+    binary: bool = False,
 ) -> PairedResult:
-    """Compare condition A with condition B on the same episodes (a[i] and b[i] belong to episode i)."""
+    """Compare condition A with condition B on the same episodes (a[i] and b[i] belong to episode i).
+
+    ``binary``: the outcomes are 0/1 (a rubric item right or not); the result then also carries the discordant
+    pairs and the exact bounds of the difference (``binary_difference_bounds``)."""
     if len(a) != len(b):
         raise ValueError(f"paired samples differ in length: {len(a)} vs {len(b)}")
     av = np.asarray(a, dtype=np.float64)
@@ -220,9 +287,16 @@ def paired_difference(
     if n == 0:
         nan = float("nan")
         return PairedResult(0, nan, nan, nan, nan, nan, nan, "none (n=0)", n_boot, seed)
+    if binary and not (np.isin(av, (0.0, 1.0)).all() and np.isin(bv, (0.0, 1.0)).all()):
+        raise ValueError("binary paired samples must be 0 or 1")
     d = av - bv
     lo, hi, p, method = _difference_tests(d.tobytes(), n_boot, n_perm, seed, max_exact, level)
-    return PairedResult(n, exact_mean(av), exact_mean(bv), exact_mean(d), lo, hi, p, method, n_boot, seed)
+    res = PairedResult(n, exact_mean(av), exact_mean(bv), exact_mean(d), lo, hi, p, method, n_boot, seed)
+    if not binary:
+        return res
+    n_ab, n_ba = int(np.count_nonzero(d > 0)), int(np.count_nonzero(d < 0))
+    exact_low, exact_high = binary_difference_bounds(n_ab, n_ba, n, level)
+    return dataclasses.replace(res, n_ab=n_ab, n_ba=n_ba, exact_low=exact_low, exact_high=exact_high)
 
 
 # ---------------------------------------------------------------------------------------------- multiplicity
