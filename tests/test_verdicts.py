@@ -8,10 +8,13 @@ from pathlib import Path
 
 import pytest
 
-from vlmproprio.stats import benjamini_hochberg, holm
+from vlmproprio.stats import benjamini_hochberg, holm, paired_difference
 from vlmproprio.verdicts import (
+    VERDICT_RULES,
     ClaimsError,
     ModelOutputs,
+    effect_bound,
+    format_verdict,
     group_edge_excess,
     load_claims,
     mark_families,
@@ -89,7 +92,7 @@ def test_mark_families_corrects_primary_with_holm_and_the_rest_with_bh_per_model
         (0.2, 0.01, 0.4, "supported"),
         (0.2, 0.05, 0.4, "supported"),
         (0.2, 0.06, 0.4, "inconclusive"),
-        (0.0, 1.0, 0.0, "not supported"),  # CI [0, 0]: no positive effect is compatible with the data
+        (0.0, 1.0, 0.0, "not supported"),  # CI [0, 0]: no positive effect detected (a bound is stated)
         (-0.1, 0.2, 0.05, "inconclusive"),
         (-0.2, 0.01, -0.1, "not supported"),
     ],
@@ -97,6 +100,34 @@ def test_mark_families_corrects_primary_with_holm_and_the_rest_with_bh_per_model
 def test_verdict_rule(d, p_holm, hi, want):
     assert verdict_of({"mean_diff": d, "p_holm": p_holm, "ci_high": hi}, 0.05) == want
     assert verdict_of(None, 0.05) == "not tested"
+
+
+def test_not_supported_states_the_largest_compatible_effect():
+    """No discordant pair among 22 episodes: the bootstrap CI is [0, 0], yet up to +15.4 pp is compatible."""
+    row = paired_difference([0.0] * 22, [0.0] * 22, binary=True).to_dict()
+    row["p_holm"] = 1.0
+    assert (row["ci_low"], row["ci_high"]) == (0.0, 0.0)
+    assert verdict_of(row, 0.05) == "not supported"
+    bound, text = effect_bound(row)
+    assert bound == pytest.approx(1 - 0.025 ** (1 / 22), rel=1e-12) and 0.15 < bound < 0.16
+    assert text == "no effect above +15.4 pp detected (exact 95 % bound; 0 vs 0 discordant of 22 episodes)"
+    # a continuous metric states the bootstrap CI's upper end instead
+    cont = {"mean_diff": 0.01, "ci_high": 0.07, "p_holm": 0.4}
+    assert effect_bound(cont) == (0.07, "no effect above +0.070 detected (bootstrap 95 % CI)")
+    assert set(VERDICT_RULES) == {"supported", "not supported", "inconclusive", "not tested"}
+
+
+def test_verdicts_carry_the_bound_and_the_test_method():
+    claims = load_claims()
+    h = next(h for h in claims.hypotheses if h.metric == "final_trajectory_correct")
+    res = paired_difference([1.0] * 2 + [0.0] * 20, [0.0] * 22, binary=True)
+    row = {"model": "m", "task": h.task, "metric": h.metric, "a": h.a, "b": h.b, **res.to_dict()}
+    mark_families([row], claims)
+    (v,) = [v for v in verdicts([row], claims, ["m"]) if v["hypothesis"] == h.id]
+    assert v["verdict"] == "inconclusive" and v["p_method"] == "exact sign-flip"
+    assert (v["exact_low"], v["exact_high"]) == (res.exact_low, res.exact_high)
+    assert v["bound"] == res.exact_high and "2 vs 0 discordant of 22" in v["bound_text"]
+    assert format_verdict(v).endswith("; " + v["bound_text"])
 
 
 def test_binomial_tail_equals_scipy():

@@ -6,10 +6,11 @@
   Holm's step-down procedure (family-wise error rate ``alpha``).
 * **Every other paired test is exploratory** and carries a Benjamini-Hochberg q-value, computed per model
   over all of that model's exploratory tests.
-* **Verdict** per model and hypothesis: *supported* when the mean difference A - B is positive and the
-  Holm-adjusted p-value is <= alpha; *not supported* when the bootstrap 95 % CI of the difference lies at or
-  below 0 (no positive effect is compatible with the data) or the corrected test finds A < B; otherwise
-  *inconclusive*; *not tested* when the run lacks a condition.
+* **Verdict** per model and hypothesis, in the words of ``VERDICT_RULES`` (docs/metrics.md and the report use
+  them): *supported*, *not supported*, *inconclusive*, *not tested*. A "not supported" or "inconclusive"
+  states the largest effect still compatible with the data (``BOUND_RULE``, ``effect_bound``): a
+  rubric item right or wrong per episode gets an exact bound from its discordant pairs, because with none of
+  them among 22 episodes a bootstrap CI is [0, 0] while effects up to +15.4 pp are not excluded.
 * **Sanity warnings** (per model): near-constant frame captions, gibberish (many non-words, or final
   captions that name nothing the task's lexicon knows), and segmentation points that fall on the edges of
   the pipeline's frame groups more often than chance -- each means the model's differences cannot be read
@@ -35,6 +36,19 @@ CLAIMS_FILE = Path(__file__).with_name("claims.yml")
 PRIMARY = "primary"
 EXPLORATORY = "exploratory"
 VERDICTS = ("supported", "not supported", "inconclusive", "not tested")
+VERDICT_RULES = {
+    "supported": "the mean difference A − B is positive and its Holm-adjusted p ≤ alpha",
+    "not supported": "no positive effect detected: the bootstrap 95 % CI of the difference lies at or below 0, "
+    "or the corrected test finds A < B; it excludes only effects above the stated bound",
+    "inconclusive": "anything else: a positive effect is neither established nor excluded below the stated bound",
+    "not tested": "the run lacks condition A or B",
+}
+BOUND_RULE = (
+    "the largest effect still compatible with the data: for a rubric item right or wrong per episode, the exact "
+    "one-sided 95 % upper bound of the difference from its discordant pairs (Clopper–Pearson bounds of both "
+    "discordant shares at 97.5 %, combined by Bonferroni); for any other metric, the upper end of the "
+    "bootstrap 95 % CI"
+)
 
 # sanity thresholds (docs/metrics.md explains each)
 # distinct frame captions / frames of a cell (episode x condition), averaged over cells, below this: near-constant.
@@ -168,12 +182,30 @@ def verdict_of(row: Mapping | None, alpha: float) -> str:
     return "inconclusive"
 
 
+def effect_bound(row: Mapping | None) -> tuple[float | None, str | None]:
+    """The largest effect still compatible with the data (``BOUND_RULE``) and the words that state it."""
+    if row is None or row.get("mean_diff") is None:
+        return None, None
+    if row.get("exact_high") is not None:
+        hi = row["exact_high"]
+        return hi, (
+            f"no effect above {100 * hi:+.1f} pp detected (exact 95 % bound; {row['n_ab']} vs {row['n_ba']} "
+            f"discordant of {row['n']} episodes)"
+        )
+    hi = row.get("ci_high")
+    if hi is None:
+        return None, None
+    return hi, f"no effect above {hi:+.3f} detected (bootstrap 95 % CI)"
+
+
 def verdicts(paired: Sequence[Mapping], claims: Claims, models: Iterable[str]) -> list[dict]:
     """One verdict per model and primary hypothesis (rows must be marked by ``mark_families``)."""
     out = []
     for model in models:
         for h in claims.hypotheses:
             row = next((r for r in paired if r["model"] == model and h.matches(r)), None)
+            verdict = verdict_of(row, claims.alpha)
+            bound, bound_text = effect_bound(row) if verdict in ("not supported", "inconclusive") else (None, None)
             out.append(
                 {
                     "model": model,
@@ -183,13 +215,18 @@ def verdicts(paired: Sequence[Mapping], claims: Claims, models: Iterable[str]) -
                     "a": h.a,
                     "b": h.b,
                     "task": h.task,
-                    "verdict": verdict_of(row, claims.alpha),
+                    "verdict": verdict,
                     "n": row.get("n") if row else None,
                     "mean_diff": row.get("mean_diff") if row else None,
                     "ci_low": row.get("ci_low") if row else None,
                     "ci_high": row.get("ci_high") if row else None,
                     "p_value": row.get("p_value") if row else None,
                     "p_holm": row.get("p_holm") if row else None,
+                    "p_method": row.get("method") if row else None,
+                    "exact_low": row.get("exact_low") if row else None,
+                    "exact_high": row.get("exact_high") if row else None,
+                    "bound": bound,
+                    "bound_text": bound_text,
                     "alpha": claims.alpha,
                 }
             )
@@ -332,10 +369,12 @@ def sanity_warnings(outputs: Mapping[str, ModelOutputs], group_size: int) -> lis
 
 
 def format_verdict(v: Mapping) -> str:
-    """'both > none on final_trajectory_correct (all): inconclusive, +0.05 [-0.02, +0.14], Holm p = 0.31'."""
+    """'h: both > none on final_trajectory_correct (all): inconclusive, diff +0.045 [+0.000, +0.136], Holm p = 0.310;
+    no effect above +22.8 pp detected (exact 95 % bound; 1 vs 0 discordant of 22 episodes)'."""
     head = f"{v['hypothesis']}: {v['a']} > {v['b']} on {v['metric']} ({v['task']}): {v['verdict']}"
     if v.get("mean_diff") is None:
         return head
     p = v.get("p_holm")
     ptxt = "–" if p is None else ("<0.001" if p < 0.001 else f"{p:.3f}")
-    return f"{head}, diff {v['mean_diff']:+.3f} [{v['ci_low']:+.3f}, {v['ci_high']:+.3f}], Holm p = {ptxt}"
+    out = f"{head}, diff {v['mean_diff']:+.3f} [{v['ci_low']:+.3f}, {v['ci_high']:+.3f}], Holm p = {ptxt}"
+    return f"{out}; {v['bound_text']}" if v.get("bound_text") else out

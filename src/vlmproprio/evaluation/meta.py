@@ -3,6 +3,8 @@ how each of its numbers is defined, so the scores can be read without the code."
 
 from __future__ import annotations
 
+from collections import Counter
+
 from vlmproprio.evaluation.captions import EmbeddedCaptions
 from vlmproprio.evaluation.chance import Baselines
 from vlmproprio.evaluation.definitions import PAIRED_METRICS, SCORES_VERSION, ScoreSettings
@@ -11,6 +13,7 @@ from vlmproprio.evaluation.out_of_sample import LOO_RULE
 from vlmproprio.evaluation.statistics import Statistics
 from vlmproprio.scoring import Lexicon
 from vlmproprio.segmentation import CHANCE_DRAWS, CHANCE_METRICS, CHANCE_SEED, IOU_THRESHOLDS, TOLERANCES
+from vlmproprio.stats import DEFAULT_MAX_EXACT
 
 MISSING_POLICY = (
     "A frame caption with status 'missing', an empty text, or no entry in the transcript is a gap: the trace "
@@ -58,7 +61,9 @@ def _stats(settings: ScoreSettings, stats: Statistics) -> dict:
         "n_perm": settings.n_perm,
         "seed": settings.seed,
         "ci": "percentile bootstrap 95%",
-        "p_value": "two-sided sign-flip permutation (exact up to 16 pairs)",
+        "p_value": f"two-sided sign-flip permutation, exact over every sign pattern up to {DEFAULT_MAX_EXACT} "
+        f"pairs, above that Monte Carlo, {settings.n_perm} patterns, p >= 1/{settings.n_perm + 1}",
+        "p_methods": dict(sorted(Counter(r["method"] for r in stats.paired).items())),
         "multiplicity": "primary hypotheses (scores/verdicts.json): Holm per model; every other paired test: "
         "exploratory, Benjamini-Hochberg q-value per model",
     }

@@ -12,6 +12,9 @@ from vlmproprio.evaluation.inputs import condition_order
 from vlmproprio.stats import DEFAULT_N_BOOT, DEFAULT_N_PERM, DEFAULT_SEED, paired_difference
 from vlmproprio.verdicts import Claims, ModelOutputs, mark_families, sanity_warnings, verdicts
 
+# the final caption's rubric items, right (1) or not (0) per episode: their differences get exact bounds
+BINARY_METRICS = tuple(m for m in PAIRED_METRICS if m.endswith(("_correct", "_mentioned")))
+
 
 def default_comparisons(conditions: Sequence[str]) -> list[tuple[str, str]]:
     """Every condition against the no-state baseline, and the full-state condition against each control."""
@@ -52,7 +55,12 @@ def paired_table(
                     vb = [p[1].get(metric) for p in pairs]
                     keep = [(x, y) for x, y in zip(va, vb, strict=True) if x is not None and y is not None]
                     res = paired_difference(
-                        [x for x, _ in keep], [y for _, y in keep], n_boot=n_boot, n_perm=n_perm, seed=seed
+                        [x for x, _ in keep],
+                        [y for _, y in keep],
+                        n_boot=n_boot,
+                        n_perm=n_perm,
+                        seed=seed,
+                        binary=metric in BINARY_METRICS,
                     )
                     out.append({"model": model, "task": task, "metric": metric, "a": a, "b": b, **res.to_dict()})
     return out

@@ -278,6 +278,8 @@ def judge_table(s: RunScores) -> Table | None:
 
 def verdict_table(s: RunScores) -> Table:
     """One row per model and pre-registered primary hypothesis: the verdict, effect with 95 % CI, corrected p."""
+    from vlmproprio.verdicts import BOUND_RULE, VERDICT_RULES
+
     rows = []
     for v in s.verdicts.get("verdicts", []):
         rows.append(
@@ -286,7 +288,7 @@ def verdict_table(s: RunScores) -> Table:
                 f"{v['a']} > {v['b']}",
                 label(v["metric"]),
                 v["task"],
-                v["verdict"],
+                v["verdict"] + (f": {v['bound_text']}" if v.get("bound_text") else ""),
                 fmt_paired(v["metric"], {**v, "family": None}) if v.get("mean_diff") is not None else "–",
                 fmt_p(v.get("p_holm")),
             ]
@@ -298,10 +300,11 @@ def verdict_table(s: RunScores) -> Table:
         rows=rows,
         align=["l", "l", "l", "l", "l", "r", "r"],
         note=f"Primary hypotheses from {claims.get('source', 'claims.yml')} (alpha {claims.get('alpha', 0.05)}), "
-        "corrected with Holm's procedure per model. Supported: positive effect and Holm p ≤ alpha; not supported: "
-        "the 95% CI of the effect lies at or below 0 (or a significant negative effect); otherwise inconclusive.",
+        "corrected with Holm's procedure per model. "
+        + " ".join(f"{k.capitalize()}: {VERDICT_RULES[k]}." for k in ("supported", "not supported", "inconclusive"))
+        + f" The stated bound is {BOUND_RULE}.",
         anchor="verdicts",
-        row_classes=[f"verdict-{r[4].replace(' ', '-')}" for r in rows],
+        row_classes=[f"verdict-{v['verdict'].replace(' ', '-')}" for v in s.verdicts.get("verdicts", [])],
     )
 
 
