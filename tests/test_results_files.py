@@ -112,3 +112,24 @@ def test_show_rerenders_a_run_of_the_papers_verbatim_prompts(tmp_path, capsys) -
     capsys.readouterr()
     assert main(["show", str(run), "--episode", "door_00", "--condition", "both"]) == 0
     assert ", 0 differ" in capsys.readouterr().out
+
+
+def test_show_prints_how_each_recovered_caption_was_read_and_the_reasoning(scored_run: Path, tmp_path, capsys) -> None:
+    import shutil
+
+    run = tmp_path / "run"
+    shutil.copytree(scored_run, run)
+    path = run / "transcripts" / "reference" / "door_00__none.json"
+    t = json.loads(path.read_text())
+    first = t["frames"][1]
+    first.update(status="recovered", span=f"2. **Image 2**: {first['text']}", removed=["label", "emphasis"])
+    t["final_status"], t["final_span"], t["final_removed"] = "recovered", f'"{t["final"]}"', ["quotes"]
+    next(r for r in t["requests"] if r["stage"] == "p1")["reasoning"] = "the arm is still"
+    path.write_text(json.dumps(t, indent=1))
+    assert main(["show", str(run), "--episode", "door_00", "--condition", "none"]) == 0
+    out = capsys.readouterr().out
+    assert ", 0 differ" in out  # the audit changes no prompt
+    assert f"--- parsed: frame 1: recovered (label, emphasis removed), from: '2. **Image 2**: {first['text']}'" in out
+    assert "--- parsed: final: recovered (quotes removed), from: " in out
+    assert "--- parsed: reasoning (16 characters, no part of any caption): the arm is still" in out
+    assert out.count("--- parsed:") == 3  # clean captions get no audit line

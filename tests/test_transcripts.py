@@ -36,14 +36,53 @@ def _transcript(episode: str, condition: str = "none") -> Transcript:
     )
 
 
-def test_to_dict_is_asdict():
+AUDIT_FIELDS = {"span", "removed", "reasoning", "final_span", "final_removed"}
+
+
+def _without_empty_audit(d):
+    """asdict's output less the audit fields left empty (what to_dict leaves out)."""
+    if isinstance(d, dict):
+        return {k: _without_empty_audit(v) for k, v in d.items() if not (k in AUDIT_FIELDS and not v)}
+    if isinstance(d, list):
+        return [_without_empty_audit(v) for v in d]
+    return d
+
+
+def test_to_dict_is_asdict_without_the_empty_audit_fields():
     t = _transcript("door_00")
     d = t.to_dict()
-    assert d == dataclasses.asdict(t)
-    assert list(d) == list(dataclasses.asdict(t))
-    assert json.dumps(d, indent=1) == json.dumps(dataclasses.asdict(t), indent=1)
+    expected = _without_empty_audit(dataclasses.asdict(t))
+    assert d == expected
+    assert list(d) == list(expected)
+    assert json.dumps(d, indent=1) == json.dumps(expected, indent=1)
     d["timing"]["p1_s"] = 9.0  # a copy, as asdict's
     assert t.timing["p1_s"] == 0.125
+
+
+def test_a_clean_transcript_has_only_the_keys_it_always_had():
+    d = _transcript("door_00").to_dict()
+    assert list(d) == [
+        *("model", "episode_id", "task", "condition", "prompt_version", "frames", "scenes", "final"),
+        *("final_status", "requests", "timing", "version"),
+    ]
+    assert all(list(f) == ["frame_index", "step", "text", "status"] for f in d["frames"])
+    assert all(list(r) == ["stage", "group", "key", "from_cache", "latency_s"] for r in d["requests"])
+
+
+def test_the_audit_of_a_recovered_caption_and_the_reasoning_round_trip(tmp_path):
+    t = dataclasses.replace(
+        _transcript("door_00"),
+        frames=[FrameCaption(0, 0, "reach", "recovered", "1. **Image 1**: reach", ("label", "emphasis"))],
+        scenes=[SceneCaption(0, (0,), "scene", "recovered", '"scene"', ("quotes",))],
+        final_span="Here is the instruction: open the door",
+        final_removed=("preamble",),
+        requests=[RequestRecord("p1", 0, "ab" * 32, False, 0.1, reasoning="the handle is on the left")],
+    )
+    d = t.to_dict()
+    assert d["frames"][0]["removed"] == ["label", "emphasis"] and d["frames"][0]["span"].startswith("1.")
+    assert d["final_removed"] == ["preamble"] and d["requests"][0]["reasoning"] == "the handle is on the left"
+    write_transcript(tmp_path, t)
+    assert read_transcript(transcript_path(tmp_path, t.model, t.episode_id, t.condition)) == t
 
 
 def test_write_transcripts_writes_what_write_transcript_writes(tmp_path):

@@ -142,8 +142,10 @@ class CellRun:
             tag=RequestTag(self.episode.episode_id, self.condition.name, stage, group),
         )
 
-    def _record(self, stage: str, group: int, answer: Answer) -> None:
-        self.records.append(RequestRecord(stage, group, answer.key, answer.from_cache, answer.meta.latency_s))
+    def _record(self, stage: str, group: int, answer: Answer, reasoning: str) -> None:
+        self.records.append(
+            RequestRecord(stage, group, answer.key, answer.from_cache, answer.meta.latency_s, reasoning)
+        )
 
     # stages ----------------------------------------------------------------------------------
     def p1_requests(self) -> list[ChatRequest]:
@@ -155,8 +157,9 @@ class CellRun:
 
     def accept_p1(self, answers: Sequence[Answer]) -> None:
         for g, (members, answer) in enumerate(zip(self.groups, answers, strict=True)):
-            self._record("p1", g, answer)
-            self.frame_captions += parsing.parse_frame_captions(answer.text, len(members), offset=members.start)
+            read = parsing.parse_frame_answer(answer.text, len(members), offset=members.start)
+            self._record("p1", g, answer, read.reasoning)
+            self.frame_captions += read.captions
 
     def p2_requests(self) -> list[ChatRequest]:
         out = []
@@ -169,8 +172,9 @@ class CellRun:
 
     def accept_p2(self, answers: Sequence[Answer]) -> None:
         for g, answer in enumerate(answers):
-            self._record("p2", g, answer)
-            self.scene_captions.append(parsing.parse_single(answer.text))
+            read = parsing.parse_single_answer(answer.text)
+            self._record("p2", g, answer, read.reasoning)
+            self.scene_captions.append(read.caption)
 
     def p3_request(self) -> ChatRequest:
         with_image = set(capped_positions(len(self.positions), self.settings.max_images_p3))
@@ -182,8 +186,9 @@ class CellRun:
         return self._request(prompts.process3(views, scenes, self.condition, self.settings.prompt), "p3", -1)
 
     def accept_p3(self, answer: Answer) -> None:
-        self._record("p3", -1, answer)
-        self.final = parsing.parse_single(answer.text)
+        read = parsing.parse_single_answer(answer.text)
+        self._record("p3", -1, answer, read.reasoning)
+        self.final = read.caption
 
     def timing(self) -> dict[str, float]:
         """Model time per stage for this cell (latencies as the backend reported them; 0 for cache hits)."""
@@ -194,14 +199,15 @@ class CellRun:
 
     def transcript(self, model: str) -> Transcript:
         frames = [
-            FrameCaption(pos, self.episode.frames[self.positions[pos]].step, p.text, p.status)
+            FrameCaption(pos, self.episode.frames[self.positions[pos]].step, p.text, p.status, *_audit(p))
             for pos, p in enumerate(self.frame_captions)
         ]
         scenes = [
-            SceneCaption(g, tuple(members), p.text, p.status)
+            SceneCaption(g, tuple(members), p.text, p.status, *_audit(p))
             for g, (members, p) in enumerate(zip(self.groups, self.scene_captions, strict=True))
         ]
         assert self.final is not None
+        final_span, final_removed = _audit(self.final)
         return Transcript(
             model=model,
             episode_id=self.episode.episode_id,
@@ -214,7 +220,15 @@ class CellRun:
             final_status=self.final.status,
             requests=list(self.records),
             timing=self.timing(),
+            final_span=final_span,
+            final_removed=final_removed,
         )
+
+
+def _audit(p: parsing.Parsed) -> tuple[str, tuple[str, ...]]:
+    """What a transcript keeps of a caption's audit: nothing for an exact caption (its span is the caption's own
+    line, and a clean answer's transcript must not change), else the raw span and the classes removed."""
+    return ("", ()) if p.status == "ok" else (p.span, p.removed)
 
 
 DEFAULT_CHUNK = 64

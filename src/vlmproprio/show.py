@@ -4,7 +4,9 @@ The response cache and the transcripts store request keys, not prompts. A prompt
 fixtures, the condition, the pipeline settings recorded in run.json and the answers of the earlier processes
 (recorded in the transcript), so it can be rebuilt exactly; each rebuilt request's cache key is compared with
 the key the run recorded, which proves the prompt shown is the prompt that was sent (or says it is not,
-e.g. after the prompts or the fixtures changed).
+e.g. after the prompts or the fixtures changed). Below each answer it lists how the parser got each caption
+that was not in the exact requested form (its status, the recovery classes removed, the raw span it came
+from) and the answer's reasoning, when the model wrote any.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from vlmproprio.errors import UsageError
 from vlmproprio.io import load_required_json
 from vlmproprio.parsing import Parsed
 from vlmproprio.pipeline import CellRun, PipelineSettings
-from vlmproprio.transcripts import read_transcripts
+from vlmproprio.transcripts import FrameCaption, SceneCaption, Transcript, read_transcripts
 
 
 @dataclass(frozen=True)
@@ -30,6 +32,7 @@ class ShownRequest:
     key: str  # the key of the rebuilt request
     recorded_key: str | None  # the key the run recorded for this stage and group
     answer: str  # the parsed answer the run kept (frame captions joined for Process 1)
+    audit: tuple[str, ...] = ()  # one line per caption not taken as it was, then the answer's reasoning
 
     @property
     def matches(self) -> bool:
@@ -110,11 +113,43 @@ def rerender(
     scene_texts = [sc.text for sc in t.scenes]
     answers = [*p1_answers, *(scene_texts[g] if g < len(scene_texts) else "" for g in range(len(p2)))]
     shown = [
-        ShownRequest(req, request_key(identity, req), recorded.get((req.tag.stage, req.tag.group)), answer)
+        ShownRequest(
+            req,
+            request_key(identity, req),
+            recorded.get((req.tag.stage, req.tag.group)),
+            answer,
+            _audit_lines(t, req.tag.stage, req.tag.group, cell.groups),
+        )
         for req, answer in zip([*p1, *p2], answers, strict=True)
     ]
-    shown.append(ShownRequest(p3, request_key(identity, p3), recorded.get(("p3", -1)), t.final))
+    p3_audit = _audit_lines(t, "p3", -1, cell.groups)
+    shown.append(ShownRequest(p3, request_key(identity, p3), recorded.get(("p3", -1)), t.final, p3_audit))
     return shown
+
+
+def _caption_line(name: str, status: str, span: str, removed: tuple[str, ...]) -> str | None:
+    if not span and not removed:
+        return None
+    classes = f" ({', '.join(removed)} removed)" if removed else ""
+    return f"{name}: {status}{classes}, from: {span!r}"
+
+
+def _audit_lines(t: Transcript, stage: str, group: int, groups: list[range]) -> tuple[str, ...]:
+    """The audit of one request's captions as the transcript kept it, and its reasoning."""
+    lines: list[str | None] = []
+    if stage == "p1" and group < len(groups):
+        frames: dict[int, FrameCaption] = {f.frame_index: f for f in t.frames}
+        got = [frames[i] for i in groups[group] if i in frames]
+        lines += [_caption_line(f"frame {f.frame_index}", f.status, f.span, f.removed) for f in got]
+    elif stage == "p2":
+        scenes: list[SceneCaption] = [s for s in t.scenes if s.group == group]
+        lines += [_caption_line(f"scene {s.group}", s.status, s.span, s.removed) for s in scenes]
+    elif stage == "p3":
+        lines.append(_caption_line("final", t.final_status, t.final_span, t.final_removed))
+    reasoning = next((r.reasoning for r in t.requests if (r.stage, r.group) == (stage, group)), "")
+    if reasoning:
+        lines.append(f"reasoning ({len(reasoning)} characters, no part of any caption): {reasoning}")
+    return tuple(line for line in lines if line is not None)
 
 
 def format_shown(shown: list[ShownRequest]) -> str:
@@ -133,5 +168,6 @@ def format_shown(shown: list[ShownRequest]) -> str:
                 else:
                     out.append(part.text)
         out.append(f"--- answer kept by the run: {s.answer}")
+        out += [f"--- parsed: {line}" for line in s.audit]
         out.append("")
     return "\n".join(out)

@@ -3,6 +3,12 @@
 The pipeline writes one Transcript per (model, episode, condition) as JSON into
 a run directory; scoring and segmentation read them back, so a run can be
 re-scored later without the model.
+
+A caption that was not given in the exact requested form carries its audit: ``span``, the raw text of the
+answer it came from, and ``removed``, the recovery classes (``parsing.RECOVERY_CLASSES``) that got from that
+span to the caption; a request whose answer held a reasoning block keeps that text as ``reasoning``, apart
+from every caption. These fields are written only when they are not empty, so the transcript of a clean
+answer is the same file it always was.
 """
 
 from __future__ import annotations
@@ -32,6 +38,8 @@ class FrameCaption:
     step: int
     text: str
     status: ParseStatus
+    span: str = ""  # the raw text the caption came from; kept only when it was not "ok"
+    removed: tuple[str, ...] = ()  # recovery classes applied, in the order met
 
 
 @dataclass(frozen=True)
@@ -40,6 +48,8 @@ class SceneCaption:
     frame_indices: tuple[int, ...]
     text: str
     status: ParseStatus
+    span: str = ""
+    removed: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -51,6 +61,7 @@ class RequestRecord:
     key: str
     from_cache: bool
     latency_s: float
+    reasoning: str = ""  # the answer's reasoning block(s): never part of a caption
 
 
 @dataclass
@@ -65,6 +76,8 @@ class Transcript:
     final: str
     final_status: ParseStatus
     requests: list[RequestRecord] = field(default_factory=list)
+    final_span: str = ""
+    final_removed: tuple[str, ...] = ()
     timing: dict[str, float] = field(default_factory=dict)
     version: int = TRANSCRIPT_VERSION
 
@@ -81,16 +94,21 @@ class Transcript:
             "condition": self.condition,
             "prompt_version": self.prompt_version,
             "frames": [
-                {"frame_index": f.frame_index, "step": f.step, "text": f.text, "status": f.status} for f in self.frames
+                {"frame_index": f.frame_index, "step": f.step, "text": f.text, "status": f.status}
+                | _audit_fields(f.span, f.removed)
+                for f in self.frames
             ],
             "scenes": [
                 {"group": s.group, "frame_indices": tuple(s.frame_indices), "text": s.text, "status": s.status}
+                | _audit_fields(s.span, s.removed)
                 for s in self.scenes
             ],
             "final": self.final,
             "final_status": self.final_status,
+            **{f"final_{k}": v for k, v in _audit_fields(self.final_span, self.final_removed).items()},
             "requests": [
                 {"stage": r.stage, "group": r.group, "key": r.key, "from_cache": r.from_cache, "latency_s": r.latency_s}
+                | ({"reasoning": r.reasoning} if r.reasoning else {})
                 for r in self.requests
             ],
             "timing": dict(self.timing),
@@ -100,10 +118,28 @@ class Transcript:
     @classmethod
     def from_dict(cls, d: dict) -> Transcript:
         d = dict(d)
-        d["frames"] = [FrameCaption(**f) for f in d["frames"]]
-        d["scenes"] = [SceneCaption(**{**s, "frame_indices": tuple(s["frame_indices"])}) for s in d["scenes"]]
+        d["frames"] = [FrameCaption(**_read_audit(f)) for f in d["frames"]]
+        d["scenes"] = [
+            SceneCaption(**_read_audit({**s, "frame_indices": tuple(s["frame_indices"])})) for s in d["scenes"]
+        ]
         d["requests"] = [RequestRecord(**r) for r in d.get("requests", [])]
+        if "final_removed" in d:
+            d["final_removed"] = tuple(d["final_removed"])
         return cls(**d)
+
+
+def _audit_fields(span: str, removed: Sequence[str]) -> dict:
+    """A caption's audit as written: only what is there (a clean caption's entry gains no key)."""
+    out: dict = {}
+    if span:
+        out["span"] = span
+    if removed:
+        out["removed"] = list(removed)
+    return out
+
+
+def _read_audit(d: dict) -> dict:
+    return {**d, "removed": tuple(d["removed"])} if "removed" in d else d
 
 
 def cell_key(model: str, episode_id: str, condition: str) -> str:

@@ -13,7 +13,8 @@
   them among 22 episodes a bootstrap CI is [0, 0] while effects up to +15.4 pp are not excluded.
 * **Sanity warnings** (per model): near-constant frame captions, gibberish (many non-words, or final
   captions that name nothing the task's lexicon knows), and segmentation points that fall on the edges of
-  the pipeline's frame groups more often than chance -- each means the model's differences cannot be read
+  the pipeline's frame groups more often than chance, and frame captions the parser had to place by
+  position rather than read from a label (heavy recovery) -- each means the model's differences cannot be read
   as "the model used the state".
 
 The format of the claims file and every threshold here are documented in docs/metrics.md.
@@ -59,6 +60,9 @@ MIN_DISTINCT_PER_CELL = 0.15
 MAX_MISSING_FRAME_SHARE = 0.20  # frame captions missing (unparsed or empty), above this: warn
 MAX_NON_WORD_SHARE = 0.20  # caption tokens that are no word or number, above this: gibberish
 MAX_NO_HIT_FINAL_SHARE = 0.80  # final captions without a single lexicon hit, above this: gibberish
+# present frame captions found by position rather than read from a label (parsing.HEAVY_CLASSES), at least
+# this share: the captions may sit on the wrong frames, so the segmentation reads the parser's guess
+MIN_HEAVY_RECOVERY_SHARE = 0.20
 GROUP_EDGE_RATIO = 1.5  # points on group edges / expected under uniform placement, at least this ...
 GROUP_EDGE_P = 0.001  # ... and a one-sided binomial p-value below this
 WORD_RE = re.compile(r"^(?:[A-Za-z]+(?:['-][A-Za-z]+)*|[+-]?\d+(?:[.,]\d+)*%?)$")
@@ -243,6 +247,7 @@ class ModelOutputs:
     frame_captions: list[str] = field(default_factory=list)  # every present frame caption, all cells
     cell_distinct: list[float] = field(default_factory=list)  # per cell: distinct present frame captions / frames
     frames_missing: int = 0
+    frames_heavy: int = 0  # present frame captions that needed a heavy recovery
     all_captions: list[str] = field(default_factory=list)  # frame, scene and final captions
     final_hits: list[int] = field(default_factory=list)  # lexicon hits of each final caption
     # per cell: (number of frames, segmentation points at the reported threshold)
@@ -336,6 +341,18 @@ def sanity_warnings(outputs: Mapping[str, ModelOutputs], group_size: int) -> lis
                     "message": f"{o.frames_missing} of {n_frames + o.frames_missing} frame captions are missing "
                     f"({100 * missing:.0f}% > {100 * MAX_MISSING_FRAME_SHARE:g}%): the parser found no caption",
                     "value": missing,
+                }
+            )
+        heavy = o.frames_heavy / n_frames if n_frames else 0.0
+        if heavy >= MIN_HEAVY_RECOVERY_SHARE:
+            out.append(
+                {
+                    "model": model,
+                    "kind": "heavy-recovery",
+                    "message": f"{o.frames_heavy} of {n_frames} present frame captions needed heavy recovery "
+                    f"({100 * heavy:.0f}% >= {100 * MIN_HEAVY_RECOVERY_SHARE:g}%): placed by position, not read "
+                    "from a frame label, so they may describe other frames",
+                    "value": heavy,
                 }
             )
         share, tokens = non_word_share(o.all_captions)

@@ -14,7 +14,7 @@ from report_helpers import CONDS, EVIL, NEGATED_FINAL, add_model, make_run, scor
 from scoring_helpers import prefill_embeddings
 from vlmproprio.report import ReportError, compare_runs, load_run_scores, write_report
 from vlmproprio.report.page import highlight
-from vlmproprio.report.tables import fmt_p, fmt_paired, fmt_value
+from vlmproprio.report.tables import fmt_p, fmt_paired, fmt_value, parsing_table
 
 for _module in ("matplotlib", "jinja2"):
     pytest.importorskip(_module, reason="reports need the [report] extra: pip install 'vlmproprio[report]'")
@@ -159,6 +159,22 @@ def test_markdown_tables_show_the_scores(run, page):
 
 
 # ---------------------------------------------------------------------------------------------- page content
+
+
+def test_parsing_recoveries_per_model(run, page):
+    md = (page[0].parent / "report.md").read_text(encoding="utf-8")
+    assert "### Parsing recoveries" in md
+    # written transcripts, no model answers: one frame made 'recovered' by hand, one missing, nothing heavy
+    assert _md_row(md, "synthetic", "0")[1:] == ["0", "0 (0 chars)", "1", "1", "0 (0%)", "–"]
+    scores = load_run_scores(run[0])
+    frames = {"captions": 10, "recovered": 4, "missing": 2, "heavy": 2}
+    counts = {"label": {"frames": 2, "scenes": 0, "final": 0}, "quotes": {"frames": 0, "scenes": 3, "final": 1}}
+    model = {"answers": 5, "answers_with_reasoning": 2, "reasoning_chars": 80, "frames": frames, "recoveries": counts}
+    scores.meta = {**scores.meta, "parsing": {"heavy_classes": ["unnumbered"], "models": {"m": model}}}
+    table = parsing_table(scores)
+    assert table.rows == [["m", "5", "2 (80 chars)", "4", "2", "2 (25%)", "label 2/0/0; quotes 0/3/1"]]
+    scores.meta = {k: v for k, v in scores.meta.items() if k != "parsing"}  # scored before it was kept
+    assert parsing_table(scores) is None
 
 
 def test_caption_text_is_escaped(page):

@@ -16,6 +16,7 @@ from vlmproprio.evaluation.captions import Cell, EmbeddedCaptions
 from vlmproprio.evaluation.inputs import RunInputs
 from vlmproprio.evaluation.metrics import CellView, computed_columns
 from vlmproprio.parallel import map_groups
+from vlmproprio.parsing import HEAVY_CLASSES
 from vlmproprio.scoring import (
     ITEMS,
     CaptionScore,
@@ -197,8 +198,17 @@ def _computed(view: CellView) -> dict:
     return computed_columns(view, table) if any(m.compute is not None for m in table) else {}
 
 
-def _add_outputs(o: ModelOutputs, ep: Episode, texts: list[str], statuses: list[str], c: _Captions) -> None:
+def _add_outputs(
+    o: ModelOutputs, t: Transcript, ep: Episode, texts: list[str], statuses: list[str], c: _Captions
+) -> None:
     o.frames_missing += statuses.count("missing")
+    o.frames_heavy += sum(
+        1
+        for f in t.frames
+        if 0 <= f.frame_index < len(statuses)
+        and statuses[f.frame_index] != "missing"
+        and HEAVY_CLASSES.intersection(f.removed)
+    )
     present = [x for x, st in zip(texts, statuses, strict=True) if st != "missing"]
     o.frame_captions.extend(present)
     o.cell_distinct.append(len(set(present)) / len(ep.frames))
@@ -258,7 +268,7 @@ def _score_each(
             out.sweep_rows.append(
                 {"model": t.model, "episode_id": t.episode_id, "task": ep.task, "condition": t.condition} | sp
             )
-        _add_outputs(out.outputs.setdefault(t.model, ModelOutputs()), ep, texts, statuses, c)
+        _add_outputs(out.outputs.setdefault(t.model, ModelOutputs()), t, ep, texts, statuses, c)
         out.audit[key] = _audit(t, exp, c)
         out.traces[key] = _trace(trace, statuses, ep, threshold)
         scored.append(out)

@@ -11,9 +11,11 @@ from vlmproprio.evaluation.definitions import PAIRED_METRICS, SCORES_VERSION, Sc
 from vlmproprio.evaluation.inputs import RunInputs
 from vlmproprio.evaluation.out_of_sample import LOO_RULE
 from vlmproprio.evaluation.statistics import Statistics
+from vlmproprio.parsing import HEAVY_CLASSES, RECOVERY_CLASSES
 from vlmproprio.scoring import Lexicon
 from vlmproprio.segmentation import CHANCE_DRAWS, CHANCE_METRICS, CHANCE_SEED, IOU_THRESHOLDS, TOLERANCES
 from vlmproprio.stats import DEFAULT_MAX_EXACT
+from vlmproprio.transcripts import Transcript
 
 MISSING_POLICY = (
     "A frame caption with status 'missing', an empty text, or no entry in the transcript is a gap: the trace "
@@ -69,6 +71,47 @@ def _stats(settings: ScoreSettings, stats: Statistics) -> dict:
     }
 
 
+CAPTION_KINDS = ("frames", "scenes", "final")
+
+
+def _model_parsing(transcripts: list[Transcript]) -> dict:
+    """One model's parse audit: its answers and their reasoning, its frame captions by status (``heavy``: found
+    by position, not read from a label), and per recovery class the present captions of each kind it took."""
+    captions: dict[str, list[tuple[str, tuple[str, ...]]]] = {kind: [] for kind in CAPTION_KINDS}
+    requests = [r for t in transcripts for r in t.requests]
+    for t in transcripts:
+        captions["frames"] += [(f.status, f.removed) for f in t.frames]
+        captions["scenes"] += [(s.status, s.removed) for s in t.scenes]
+        captions["final"].append((t.final_status, t.final_removed))
+    frames = captions["frames"]
+    present = {kind: [removed for status, removed in got if status != "missing"] for kind, got in captions.items()}
+    recoveries = {
+        cls: {kind: sum(cls in removed for removed in present[kind]) for kind in CAPTION_KINDS}
+        for cls in RECOVERY_CLASSES
+    }
+    return {
+        "answers": len(requests),
+        "answers_with_reasoning": sum(1 for r in requests if r.reasoning),
+        "reasoning_chars": sum(len(r.reasoning) for r in requests),
+        "frames": {
+            "captions": len(frames),
+            "recovered": sum(1 for status, _ in frames if status == "recovered"),
+            "missing": sum(1 for status, _ in frames if status == "missing"),
+            "heavy": sum(1 for removed in present["frames"] if HEAVY_CLASSES.intersection(removed)),
+        },
+        "recoveries": {cls: n for cls, n in recoveries.items() if any(n.values())},
+    }
+
+
+def parsing_meta(transcripts: list[Transcript]) -> dict:
+    """What meta.json records of how the answers were parsed, per model (recoveries: only classes met)."""
+    models = sorted({t.model for t in transcripts})
+    return {
+        "heavy_classes": sorted(HEAVY_CLASSES),
+        "models": {m: _model_parsing([t for t in transcripts if t.model == m]) for m in models},
+    }
+
+
 def score_meta(
     inputs: RunInputs,
     captions: EmbeddedCaptions,
@@ -89,4 +132,5 @@ def score_meta(
         "segmentation": _segmentation(settings, baselines),
         "controls": controls,
         "stats": _stats(settings, stats),
+        "parsing": parsing_meta(inputs.transcripts),
     }

@@ -350,6 +350,39 @@ def controls_table(s: RunScores) -> Table:
     )
 
 
+def parsing_table(s: RunScores) -> Table | None:
+    """Per model: how its answers were parsed (meta.json "parsing"; None for scores made before it was kept)."""
+    from vlmproprio.verdicts import MIN_HEAVY_RECOVERY_SHARE
+
+    parsing = s.meta.get("parsing")
+    if not isinstance(parsing, dict) or not isinstance(parsing.get("models"), dict):
+        return None
+    rows = []
+    for model, p in parsing["models"].items():
+        f = p["frames"]
+        present = f["captions"] - f["missing"]
+        heavy = f"{f['heavy']} ({100 * f['heavy'] / present:.0f}%)" if present else "0"
+        classes = "; ".join(
+            f"{cls} {n['frames']}/{n['scenes']}/{n['final']}" for cls, n in p.get("recoveries", {}).items()
+        )
+        reasoning = f"{p['answers_with_reasoning']} ({p['reasoning_chars']} chars)"
+        rows.append(
+            [model, str(p["answers"]), reasoning, str(f["recovered"]), str(f["missing"]), heavy, classes or "–"]
+        )
+    return Table(
+        title="Parsing recoveries",
+        headers=["model", "answers", "with reasoning", "frames recovered", "frames missing", "heavy", "recoveries"],
+        rows=rows,
+        align=["l", "r", "r", "r", "r", "r", "l"],
+        note="How the parser got each model's captions. Recoveries: per recovery class, the present frame/scene/final "
+        "captions it was applied to. Heavy: present frame captions placed by position rather than read from a frame "
+        f"label ({', '.join(parsing.get('heavy_classes', []))}); a sanity warning fires at "
+        f"{100 * MIN_HEAVY_RECOVERY_SHARE:g}%. Reasoning blocks are "
+        "kept apart in the transcripts and never scored.",
+        anchor="parsing",
+    )
+
+
 def report_tables(s: RunScores) -> list[Table]:
     # the metrics scoring paired (evaluation.PAIRED_METRICS, recorded in the scores), not a copy to keep in step
     caption_metrics = [m for m in s.paired_metrics if m.startswith("final_")]
@@ -362,6 +395,9 @@ def report_tables(s: RunScores) -> list[Table]:
         paired_table(s, caption_metrics, "Paired differences: final captions", "paired-captions"),
         paired_table(s, segmentation_metrics, "Paired differences: segmentation", "paired-segmentation"),
     ]
+    parsed = parsing_table(s)
+    if parsed is not None:
+        tables.append(parsed)
     judged = judge_table(s)
     return [*tables, judged] if judged is not None else tables
 
