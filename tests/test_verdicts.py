@@ -174,6 +174,7 @@ def test_sanity_warnings_fire_on_made_up_outputs():
         "near-constant",
         "missing-captions",
         "gibberish",
+        "off-task",
         "group-edges",
         "heavy-recovery",
     }
@@ -228,3 +229,18 @@ def test_tiny_random_model_is_flagged_and_the_reference_captioner_is_not(tmp_pat
     assert {"gibberish", "near-constant", "heavy-recovery"} <= kinds["tiny-qwen2-vl"]
     for readable in ("reference", "reference-state"):  # templated, but every episode's captions follow its input
         assert not kinds[readable] & {"gibberish", "near-constant", "missing-captions", "heavy-recovery"}, readable
+
+
+def test_captions_made_of_numbers_are_off_task_not_gibberish():
+    """A model that echoes the state writes numbers: every token is a number (0 % non-words), and its final
+    captions name nothing the rubric knows. That is 'off-task', with the share of numbers said, never 'gibberish'."""
+    echo = ModelOutputs(
+        frame_captions=[f"{i * 0.01:.3f} -0.512 1.204 {i}" for i in range(100)],
+        cell_distinct=[0.9] * 10,
+        all_captions=[f"{i * 0.01:.3f} -0.512 1.204 {i}" for i in range(10)],
+        final_hits=[0] * 10,
+        cells=[(11, [2]), (11, [6])],
+    )
+    w = {x["kind"]: x for x in sanity_warnings({"echo": echo}, 5)}
+    assert "gibberish" not in w
+    assert w["off-task"]["number_share"] == 1.0 and "100% of caption tokens are numbers" in w["off-task"]["message"]

@@ -11,7 +11,7 @@
   states the largest effect still compatible with the data (``BOUND_RULE``, ``effect_bound``): a
   rubric item right or wrong per episode gets an exact bound from its discordant pairs, because with none of
   them among 22 episodes a bootstrap CI is [0, 0] while effects up to +15.4 pp are not excluded.
-* **Sanity warnings** (per model): near-constant frame captions, gibberish (many non-words, or final
+* **Sanity warnings** (per model): near-constant frame captions, gibberish (many non-words), off-task (final
   captions that name nothing the task's lexicon knows), and segmentation points that fall on the edges of
   the pipeline's frame groups more often than chance, and frame captions the parser had to place by
   position rather than read from a label (heavy recovery) -- each means the model's differences cannot be read
@@ -59,7 +59,8 @@ BOUND_RULE = (
 MIN_DISTINCT_PER_CELL = 0.15
 MAX_MISSING_FRAME_SHARE = 0.20  # frame captions missing (unparsed or empty), above this: warn
 MAX_NON_WORD_SHARE = 0.20  # caption tokens that are no word or number, above this: gibberish
-MAX_NO_HIT_FINAL_SHARE = 0.80  # final captions without a single lexicon hit, above this: gibberish
+MAX_NO_HIT_FINAL_SHARE = 0.80  # final captions without a single lexicon hit, above this: off-task
+_NUMBER_RE = re.compile(r"[+-]?\d+(?:[.,]\d+)*%?")
 # present frame captions found by position rather than read from a label (parsing.HEAVY_CLASSES), at least
 # this share: the captions may sit on the wrong frames, so the segmentation reads the parser's guess
 MIN_HEAVY_RECOVERY_SHARE = 0.20
@@ -278,6 +279,18 @@ def non_word_share(texts: Iterable[str]) -> tuple[float, int]:
     return (bad / total if total else 0.0), total
 
 
+def number_share(texts: Iterable[str]) -> float:
+    """Share of whitespace tokens (punctuation stripped) that are numbers: captions that echo the state."""
+    total = numeric = 0
+    for t, n in Counter(texts).items():
+        for tok in (t or "").split():
+            w = tok.strip(STRIP)
+            if w:
+                total += n
+                numeric += n * bool(_NUMBER_RE.fullmatch(w))
+    return numeric / total if total else 0.0
+
+
 def binomial_tail(k: int, n: int, p: float) -> float:
     """P(X >= k) for X ~ Binomial(n, p): the one-sided binomial test's p-value (summed in log space, no scipy)."""
     if k <= 0:
@@ -357,16 +370,26 @@ def sanity_warnings(outputs: Mapping[str, ModelOutputs], group_size: int) -> lis
             )
         share, tokens = non_word_share(o.all_captions)
         no_hit = sum(1 for h in o.final_hits if h == 0) / len(o.final_hits) if o.final_hits else 0.0
-        if tokens and (share > MAX_NON_WORD_SHARE or no_hit > MAX_NO_HIT_FINAL_SHARE):
+        if tokens and share > MAX_NON_WORD_SHARE:
             out.append(
                 {
                     "model": model,
                     "kind": "gibberish",
-                    "message": f"gibberish: {100 * share:.0f}% of {tokens} caption tokens are not words "
-                    f"(limit {100 * MAX_NON_WORD_SHARE:g}%), {100 * no_hit:.0f}% of final captions name nothing in "
-                    f"the task lexicon (limit {100 * MAX_NO_HIT_FINAL_SHARE:g}%)",
+                    "message": f"gibberish: {100 * share:.0f}% of {tokens} caption tokens are neither words nor "
+                    f"numbers (limit {100 * MAX_NON_WORD_SHARE:g}%)",
                     "value": share,
-                    "no_hit_share": no_hit,
+                }
+            )
+        if no_hit > MAX_NO_HIT_FINAL_SHARE:
+            numbers = number_share(o.all_captions)
+            out.append(
+                {
+                    "model": model,
+                    "kind": "off-task",
+                    "message": f"off-task: {100 * no_hit:.0f}% of final captions name nothing in the task lexicon "
+                    f"(limit {100 * MAX_NO_HIT_FINAL_SHARE:g}%); {100 * numbers:.0f}% of caption tokens are numbers",
+                    "value": no_hit,
+                    "number_share": numbers,
                 }
             )
         g = group_edge_excess(o.cells, group_size)
