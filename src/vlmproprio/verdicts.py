@@ -266,29 +266,27 @@ class ModelOutputs:
                 raise TypeError(f"ModelOutputs.{f.name}: no rule to add a {type(mine).__name__}")
 
 
-def non_word_share(texts: Iterable[str]) -> tuple[float, int]:
-    """Share of whitespace tokens (punctuation stripped) that are neither a word of letters nor a number."""
-    total = bad = 0
-    for t, n in Counter(texts).items():  # a model repeats its captions across conditions: each text once
-        for tok in (t or "").split():
-            w = tok.strip(STRIP)
-            if not w:
-                continue
-            total += n
-            bad += n * (not WORD_RE.match(w))
-    return (bad / total if total else 0.0), total
-
-
-def number_share(texts: Iterable[str]) -> float:
-    """Share of whitespace tokens (punctuation stripped) that are numbers: captions that echo the state."""
-    total = numeric = 0
+def _token_share(texts: Iterable[str], counts) -> tuple[float, int]:
+    """Share of whitespace tokens (punctuation stripped) for which ``counts`` holds, and the number of tokens;
+    a model repeats its captions across conditions, so each distinct text is split once."""
+    total = hits = 0
     for t, n in Counter(texts).items():
         for tok in (t or "").split():
             w = tok.strip(STRIP)
             if w:
                 total += n
-                numeric += n * bool(_NUMBER_RE.fullmatch(w))
-    return numeric / total if total else 0.0
+                hits += n * bool(counts(w))
+    return (hits / total if total else 0.0), total
+
+
+def non_word_share(texts: Iterable[str]) -> tuple[float, int]:
+    """Share of whitespace tokens (punctuation stripped) that are neither a word of letters nor a number."""
+    return _token_share(texts, lambda w: not WORD_RE.match(w))
+
+
+def number_share(texts: Iterable[str]) -> float:
+    """Share of whitespace tokens (punctuation stripped) that are numbers: captions that echo the state."""
+    return _token_share(texts, _NUMBER_RE.fullmatch)[0]
 
 
 def binomial_tail(k: int, n: int, p: float) -> float:
