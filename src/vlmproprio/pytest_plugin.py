@@ -13,8 +13,10 @@ vlmproprio.options):
 * Tests that take the ``bench_cell`` fixture are parametrised per (model, episode, condition), with ids
   like ``reference-door_03-both``, so ``-k door_03`` or ``-k both`` select cells and a failure names one.
 * Each model is run once per session, lazily, for exactly the episodes and conditions of the cells
-  selected, then scored; a model that cannot run here (no cassette, no weights, no server) is skipped with
-  the reason and how to get it. ``reference`` and ``tiny-qwen2-vl`` need nothing and always run.
+  selected, then scored. A model named with ``--model`` that cannot run here (no cassette, no weights, no
+  server) stops the session before collection with one line: the reason and how to get it (exit code 4); a
+  default model that cannot run is skipped with that reason. ``reference`` and ``tiny-qwen2-vl`` need nothing
+  and always run.
 
 Kept import-light: collecting tests/ with the benchmark's conftest in view must not import torch.
 Session state lives in ``config.stash``.
@@ -90,7 +92,23 @@ def pytest_configure(config: pytest.Config) -> None:
         or option(config, "conditions")
         or option(config, "fixtures-dir")
     ):
-        _session(config)
+        session = _session(config)
+        if option(config, "model"):
+            _refuse_unrunnable(session)
+
+
+def _refuse_unrunnable(session: BenchSession) -> None:
+    """Models asked for by name that cannot run here stop the session once, before collection, with one line
+    each: failing every cell of such a model would repeat the same reason hundreds of times."""
+    reasons = []
+    for model in session.models:
+        avail = session.availability(model)
+        if not avail:
+            reasons.append(f"{model} cannot run in {session.mode} mode here: {avail.reason}")
+    if reasons:
+        from vlmproprio.secrets import scrub
+
+        raise pytest.UsageError(scrub("; ".join(reasons)))
 
 
 @pytest.hookimpl(optionalhook=True)
