@@ -9,7 +9,7 @@ from vlmproprio.cli.cassette import add_cassette
 from vlmproprio.cli.fixtures import add_export_dataset, add_fixture_commands, add_import_demos
 from vlmproprio.cli.models import add_make_tiny_model, add_models
 from vlmproprio.cli.power import add_power
-from vlmproprio.cli.report import add_compare, add_report
+from vlmproprio.cli.report import add_compare, add_leaderboard, add_report
 from vlmproprio.cli.run import add_run, add_show
 from vlmproprio.cli.score import add_score
 
@@ -39,6 +39,7 @@ _SUBCOMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     add_score,
     add_report,
     add_compare,
+    add_leaderboard,
     add_power,
     add_export_dataset,
     add_show,

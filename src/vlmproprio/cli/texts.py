@@ -76,6 +76,13 @@ TEXTS: dict[str, tuple[str, str | None]] = {
         "condition, paired by episode, with bootstrap 95% CIs and sign-flip p-values. Rows are matched on "
         "model/task/condition; give --model-a/--model-b to compare two models (inside one run: omit RUN_B).",
     ),
+    "leaderboard": (
+        "many runs or models side by side: one table, one plot, the verdicts",
+        "Print a table of every model in the given scored runs (any number: a tox matrix's runs, a lab's "
+        "models) against the headline metrics: the mean under --a and --b and the paired difference with its "
+        "bootstrap 95% CI, then each model's verdicts and warnings. With --out, also write index.html, "
+        "leaderboard.md, leaderboard.png (the differences with their CIs) and leaderboard.json.",
+    ),
     "power": (
         "what 10 Door + 12 bin episodes can detect: power curves and minimal detectable effects",
         "Simulate the suite's paired test (exact sign-flip, stats.py) over the episode structure "
