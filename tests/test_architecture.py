@@ -25,7 +25,7 @@ STAGES: list[tuple[str, ...]] = [
     ("answering",),
     ("transcripts", "parsing"),
     ("pipeline",),
-    ("runner", "show", "run_folder"),
+    ("runner", "show", "run_folder", "preview"),
     ("scoring", "embeddings", "segmentation"),
     ("stats", "power"),
     ("verdicts",),
