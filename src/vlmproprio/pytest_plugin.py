@@ -226,7 +226,7 @@ def _session(config: pytest.Config) -> BenchSession:
         return existing
     from vlmproprio.conditions import parse_conditions
     from vlmproprio.episodes import list_episode_ids
-    from vlmproprio.errors import VlmproprioError
+    from vlmproprio.errors import VlmproprioError, did_you_mean
     from vlmproprio.locations import find_repository_fixtures, resolve_fixtures
 
     explicit = option(config, "fixtures-dir")
@@ -249,7 +249,8 @@ def _session(config: pytest.Config) -> BenchSession:
     unknown = [e for e in episodes if e not in known]
     if unknown:
         raise pytest.UsageError(
-            f"--episodes: unknown episode(s) {', '.join(unknown)} in {fixtures} (known: {', '.join(sorted(known))})"
+            f"--episodes: unknown episode(s) {', '.join(unknown)}{did_you_mean(unknown[0], known)} in {fixtures} "
+            f"(known: {', '.join(sorted(known))})"
         )
     from vlmproprio.models import resolve_model
 

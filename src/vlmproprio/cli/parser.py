@@ -12,6 +12,8 @@ from vlmproprio.cli.power import add_power
 from vlmproprio.cli.report import add_compare, add_leaderboard, add_report
 from vlmproprio.cli.run import add_run, add_show
 from vlmproprio.cli.score import add_score
+from vlmproprio.cli.texts import MAINTAINER_COMMANDS
+from vlmproprio.conditions import CONTROLS, PAPER_CONDITIONS
 
 EPILOG = """\
 typical use:
@@ -25,6 +27,7 @@ typical use:
 lists: --model, --conditions, --episodes ... take a comma list, may be repeated, or both.
 fixtures: --fixtures, else $VLMPROPRIO_FIXTURES, else the fixtures/ of the repository you are in.
 caches: --cache-dir, else $VLMPROPRIO_CACHE, else the user cache directory (~/.cache/vlmproprio).
+maintainer commands (not listed above): {maintainer}; each has --help.
 """
 
 
@@ -50,9 +53,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="vlmproprio",
         description="Does proprioception make a VLM's captions and subtask segmentations of robot "
-        "episodes better? Record episodes, caption them with a model under four state conditions "
-        "and four controls, score the captions and segmentations, and report.",
-        epilog=EPILOG,
+        f"episodes better? Record episodes, caption them with a model under {_count(PAPER_CONDITIONS)} state "
+        f"conditions and {_count(CONTROLS)} controls, score the captions and segmentations, and report.",
+        epilog=EPILOG.format(maintainer=", ".join(sorted(MAINTAINER_COMMANDS))),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
@@ -70,3 +73,8 @@ def _version() -> str:
         return version("vlmproprio")
     except PackageNotFoundError:  # a source tree on the path without an install
         return "unknown (not installed)"
+
+
+def _count(items) -> str:
+    words = ("no", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten")
+    return words[len(items)] if len(items) < len(words) else str(len(items))

@@ -39,6 +39,9 @@ def _check_run_ranges(args: argparse.Namespace) -> None:
     """Numbers whose range argparse cannot check; the messages the backends and pipeline would give, earlier."""
     if args.max_new_tokens is not None and args.max_new_tokens < 1:
         raise UsageError(f"--max-new-tokens must be at least 1, got {args.max_new_tokens}")
+    check_range("--k", args.k, 1)
+    check_range("--frame-stride", args.frame_stride, 1)
+    check_range("--max-images-p3", args.max_images_p3, 1)
     check_range("--batch-size", args.batch_size, 1)
     check_range("--threads", args.threads, 1)
     check_range("--batch-tokens", args.batch_tokens, 1)

@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
+# Commands for the suite's maintainers: not in `vlmproprio --help`'s list (its epilog names them), still runnable.
+MAINTAINER_COMMANDS = frozenset({"manifest", "make-tiny-model"})
+
 # Sub-command texts: the line the top-level --help lists, then the description of the command's own --help.
 TEXTS: dict[str, tuple[str, str | None]] = {
     "verify": (
         "check fixtures against their manifest and summarise them",
-        None,
+        "Check every file of a fixture folder (episodes, cassettes, caption embeddings) against the sha256 "
+        "digests in its manifest.json, and print what it holds: episodes per task, frames, cassettes. Exits "
+        "non-zero, naming the file, when one is missing, changed or not listed.",
     ),
     "manifest": (
-        "rewrite the fixtures' manifest.json from the files present",
-        None,
+        "rewrite the fixtures' manifest.json from the files present (maintainers)",
+        "Rewrite manifest.json from the files of a fixture folder, after a deliberate change to them (a "
+        "re-recording, a new cassette). `verify` then checks against the new digests.",
     ),
     "record": (
         "(re)record the episodes with robosuite (needs the [record] extra)",
