@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from pathlib import Path
 
 from vlmproprio.cli.cassette import add_cassette
 from vlmproprio.cli.fixtures import add_export_dataset, add_fixture_commands, add_import_demos
@@ -63,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for add in _SUBCOMMANDS:
         add(sub)
+    _uniform_metavars(parser)
     return parser
 
 
@@ -78,3 +80,29 @@ def _version() -> str:
 def _count(items) -> str:
     words = ("no", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten")
     return words[len(items)] if len(items) < len(words) else str(len(items))
+
+
+# One metavar style: a short word for what the value is, never the destination's name (FRAME_STRIDE).
+METAVARS_BY_DEST = {"base_url": "URL", "api_key_env": "VAR", "episode": "ID", "condition": "COND"}
+
+
+def _metavar_of(action: argparse.Action) -> str:
+    if action.dest in METAVARS_BY_DEST:
+        return METAVARS_BY_DEST[action.dest]
+    if action.type is int:
+        return "N"
+    if action.type is float or getattr(action.type, "__name__", "") in ("finite_float", "unit_interval"):
+        return "X"
+    if action.type is Path:
+        return "PATH"
+    return "NAME"
+
+
+def _uniform_metavars(parser: argparse.ArgumentParser) -> None:
+    """Give every value-taking option without a metavar of its own one from ``_metavar_of``."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _uniform_metavars(sub)
+        elif action.option_strings and action.nargs != 0 and action.metavar is None and not action.choices:
+            action.metavar = _metavar_of(action)
