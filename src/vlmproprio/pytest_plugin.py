@@ -92,9 +92,40 @@ def pytest_configure(config: pytest.Config) -> None:
         or option(config, "conditions")
         or option(config, "fixtures-dir")
     ):
+        _refuse_a_path_pytest_took_for_a_test_path(config)
         session = _session(config)
         if option(config, "model"):
             _refuse_unrunnable(session)
+
+
+def _refuse_a_path_pytest_took_for_a_test_path(config: pytest.Config) -> None:
+    """``--fixtures-dir PATH`` with a space: pytest picks its rootdir and config file before it knows this
+    plugin's options, so it took PATH for a test path, and a fixture folder in another clone made that clone's
+    pyproject.toml the session's configuration. The choice cannot be undone here, so it is refused when it
+    differs from the one the real test paths give; ``--fixtures-dir=PATH`` is read right."""
+    spellings = {"--vlmproprio-fixtures-dir", "--fixtures-dir", *SHORT_ALIASES["fixtures-dir"]}
+    given = list(config.invocation_params.args)
+    used = next((a for a in given[:-1] if a in spellings), None)
+    if used is None:
+        return
+    try:  # pytest's own rule for the choice (a private function: skip the check where it moved)
+        from _pytest.config.findpaths import determine_setup
+
+        rootpath, inipath, *_ = determine_setup(
+            inifile=config.option.inifilename,
+            override_ini=config.option.override_ini,
+            args=[str(a) for a in config.args],
+            rootdir_cmd_arg=config.option.rootdir or None,
+            invocation_dir=config.invocation_params.dir,
+        )
+    except (ImportError, TypeError):
+        return
+    if (rootpath, inipath) != (config.rootpath, config.inipath):
+        value = given[given.index(used) + 1]
+        raise pytest.UsageError(
+            f"{used} {value}: pytest took {value} for a test path when it chose its configuration "
+            f"({config.inipath or config.rootpath}); write {used}={value}"
+        )
 
 
 def _refuse_unrunnable(session: BenchSession) -> None:
