@@ -1,6 +1,6 @@
 """The suite from Python: ``vlmproprio.evaluate(model=..., episodes=..., conditions=..., out=...)``.
 
-It does what ``vlmproprio run`` then ``vlmproprio score`` do, through the same runner and scorer, so its
+It does what the run command then the score command do, through the same runner and scorer, so its
 numbers are the command line's. ``model`` is a model name (``qwen2-vl``, ``hf:/path``, ``openai:gpt-4o``,
 ``py:package.module:factory``) or a model object: a :class:`~vlmproprio.backends.base.Backend` or any callable
 ``ChatRequest -> str`` (vlmproprio.backends.python), named by ``name`` and ``revision`` for the cache key.
@@ -102,6 +102,6 @@ def evaluate(
 
 
 def _embed_if_recorded(model_run: ModelRun, plan: RunPlan) -> None:
-    """A recorded cassette gets its captions' embeddings beside it, as `vlmproprio run --mode record` gives it."""
+    """A recorded cassette gets its captions' embeddings beside it, as a run in record mode gives it."""
     for _name, _build in embed_recorded([model_run], plan.out, plan.fixtures):
         pass

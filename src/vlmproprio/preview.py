@@ -1,4 +1,4 @@
-"""What a run will cost before it runs (``vlmproprio run --dry-run``): requests and images per model, process
+"""What a run will cost before it runs (``vlmproprio run --model NAME --dry-run``): requests and images per model, process
 and condition, and how many answers the response cache (or the cassette) already holds.
 
 The requests are the run's own: the pipeline builds them exactly as a run would, but nothing calls a model.

@@ -94,7 +94,7 @@ def pytest_configure(config: pytest.Config) -> None:
     ):
         _refuse_a_path_pytest_took_for_a_test_path(config)
         session = _session(config)
-        if option(config, "model"):
+        if option(config, "model") and not config.option.collectonly:  # listing the cells runs none
             _refuse_unrunnable(session)
 
 

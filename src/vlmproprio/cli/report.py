@@ -30,8 +30,21 @@ def score_and_report(run_dir: Path, fixtures: Path | None, cache: Path, *, progr
         bar.update()
         index = write_report(run_dir, fixtures=fixtures, cache_dir=cache)
         bar.update()
+    print_results(run_dir)
     print(f"report: {index}")
     return 0
+
+
+def print_results(run_dir: Path) -> None:
+    """The scores on screen: per model the headline means per condition, then the warnings and verdicts."""
+    from vlmproprio.report.data import load_run_scores
+    from vlmproprio.report.tables import verdict_lines
+    from vlmproprio.report.terminal import terminal_summary
+
+    s = load_run_scores(run_dir)
+    print(terminal_summary(s), end="")
+    for line in verdict_lines(s):
+        print(line)
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -59,6 +72,7 @@ def cmd_report(args: argparse.Namespace) -> int:
             cache_dir=cache,
         )
         bar.update()
+    print_results(args.run_dir)
     print(f"report: {index}")
     return 0
 
