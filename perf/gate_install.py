@@ -86,6 +86,11 @@ def install_and_gate(
     probe = "import importlib.util, json; print(json.dumps({m: importlib.util.find_spec(m) is not None for m in %r}))"
     _, proc = _run([py, "-c", probe % (HEAVY,)], clone, env)
     res |= {"importable": json.loads(proc.stdout), "venv_mb": _site_packages_mb(venv)}
+    # the run-file schemas ship in every install, so their checker must work in this one too
+    _, proc = _run(
+        [py, "-c", "import tempfile, vlmproprio.schemas as s; s.validate_run(tempfile.mkdtemp())"], clone, env
+    )
+    res |= {"validate_run": proc.returncode == 0 or proc.stderr[-500:]}
     cmd = [py, "-m", "pytest", "benchmark/", "-q", "-p", "no:cacheprovider", *extra_pytest]
     for m in models:
         cmd += ["--model", m]

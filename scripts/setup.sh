@@ -34,6 +34,12 @@ if [ -x .venv/bin/python ] && [ "$(cat "$STAMP" 2>/dev/null)" = "$want" ]; then
   compile_src
   exit 0
 fi
+# A .venv that is a file is a PEP 832 redirect to another tool's environment (tox writes one unless told not to):
+# this script's environment lives at .venv, so the redirect gives way to it.
+if [ -f .venv ] && [ ! -L .venv ]; then
+  echo "setup: replacing the .venv redirect file (to $(head -c 200 .venv)) with the project's environment" >&2
+  rm -f .venv
+fi
 [ -x .venv/bin/python ] || "$PYTHON" -m venv .venv
 pip_install() { .venv/bin/python -m pip install --quiet --disable-pip-version-check "$@" 2>&1 | grep -v -e "^WARNING: Location" -e "BuildBackendWarning" -e "return '\\\\n'.join" || true; }
 pip_install "$TORCH_SPEC"

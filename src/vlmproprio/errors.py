@@ -4,6 +4,11 @@ The CLI and the pytest plugin report these in one line (no traceback unless
 --debug); anything else is a bug and keeps its traceback.
 """
 
+from __future__ import annotations
+
+import difflib
+from collections.abc import Iterable
+
 
 def _rebuilt(cls: type, args: tuple, state: dict) -> Exception:
     error = cls.__new__(cls, *args)
@@ -24,3 +29,9 @@ class VlmproprioError(Exception):
 
 class UsageError(VlmproprioError):
     """A wrong flag or value (command line, pytest option, function argument from a user)."""
+
+
+def did_you_mean(name: str, known: Iterable[str]) -> str:
+    """ " (did you mean 'x'?)" for the known names closest to a misspelled one, else ""."""
+    close = difflib.get_close_matches(name, list(known), n=2, cutoff=0.6)
+    return f" (did you mean {' or '.join(repr(c) for c in close)}?)" if close else ""

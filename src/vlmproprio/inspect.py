@@ -34,6 +34,7 @@ import binascii
 import functools
 import hashlib
 import json
+import math
 import tempfile
 import time
 from collections.abc import Sequence
@@ -57,7 +58,7 @@ from inspect_ai.model import (
     get_model,
     modelapi,
 )
-from inspect_ai.scorer import Score, Target, mean, scorer, stderr
+from inspect_ai.scorer import Metric, SampleScore, Score, Target, grouped, mean, metric, scorer
 from inspect_ai.solver import Generate, TaskState, solver
 from inspect_ai.util import collect, span
 
@@ -308,7 +309,31 @@ def _scores_of(state: TaskState, fixtures: str, threshold: float, embedding_cach
     return suite_scores(transcript, state.metadata.get("fixtures", fixtures), threshold, embedding_cache)
 
 
-@scorer(metrics={m: [mean(), stderr()] for m in RUBRIC_METRICS})
+@metric(name="both-none")
+def both_minus_none() -> Metric:
+    """The paired difference the suite exists for: per episode, its score under ``both`` minus under ``none``,
+    averaged over the episodes run under both conditions (NaN when none was). A pooled mean over all conditions
+    would hide it."""
+
+    def compute(scores: list[SampleScore]) -> float:
+        cells: dict[str, dict[str, float]] = {}
+        for s in scores:
+            meta = s.sample_metadata or {}
+            cells.setdefault(meta.get("episode_id"), {})[meta.get("condition")] = s.score.as_float()
+        diffs = [c["both"] - c["none"] for c in cells.values() if "both" in c and "none" in c]
+        diffs = [d for d in diffs if math.isfinite(d)]
+        return float(sum(diffs) / len(diffs)) if diffs else float("nan")
+
+    return compute
+
+
+def _metrics_by_condition() -> list[Metric]:
+    """The headline first (both − none, paired), then each condition's mean (inspect names them
+    ``grouped_mean[<condition>]``)."""
+    return [both_minus_none(), grouped(mean(), "condition", all=False, name_template="mean[{group_name}]")]
+
+
+@scorer(metrics={m: _metrics_by_condition() for m in RUBRIC_METRICS})
 def caption_rubric(
     fixtures: str = DEFAULT_FIXTURES, threshold: float = DEFAULT_THRESHOLD, embedding_cache: str | None = None
 ):
@@ -328,7 +353,7 @@ def caption_rubric(
     return score
 
 
-@scorer(metrics={m: [mean(), stderr()] for m in SEGMENTATION_METRICS})
+@scorer(metrics={m: _metrics_by_condition() for m in SEGMENTATION_METRICS})
 def segmentation(
     fixtures: str = DEFAULT_FIXTURES, threshold: float = DEFAULT_THRESHOLD, embedding_cache: str | None = None
 ):

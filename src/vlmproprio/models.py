@@ -23,7 +23,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from vlmproprio.errors import UsageError
+from vlmproprio.errors import UsageError, did_you_mean
 from vlmproprio.kinds import kind_spec, kind_specs
 
 TINY_PREFIX = "tiny:"
@@ -176,7 +176,7 @@ def _resolve(name: str) -> ModelRef:
             return ModelRef(name, spec.slug(name, rest), spec.kind, rest, f"{rest} ({spec.label})")
     known = ", ".join(REGISTRY)
     forms = ", ".join(spec.syntax for spec in prefixed)
-    raise ModelNameError(f"unknown model {name!r}. Known: {known}; or {forms}")
+    raise ModelNameError(f"unknown model {name!r}{did_you_mean(name, REGISTRY)}. Known: {known}; or {forms}")
 
 
 def resolve_model(model: str | ModelRef) -> ModelRef:

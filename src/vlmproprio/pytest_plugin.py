@@ -13,8 +13,10 @@ vlmproprio.options):
 * Tests that take the ``bench_cell`` fixture are parametrised per (model, episode, condition), with ids
   like ``reference-door_03-both``, so ``-k door_03`` or ``-k both`` select cells and a failure names one.
 * Each model is run once per session, lazily, for exactly the episodes and conditions of the cells
-  selected, then scored; a model that cannot run here (no cassette, no weights, no server) is skipped with
-  the reason and how to get it. ``reference`` and ``tiny-qwen2-vl`` need nothing and always run.
+  selected, then scored. A model named with ``--model`` that cannot run here (no cassette, no weights, no
+  server) stops the session before collection with one line: the reason and how to get it (exit code 4); a
+  default model that cannot run is skipped with that reason. ``reference`` and ``tiny-qwen2-vl`` need nothing
+  and always run.
 
 Kept import-light: collecting tests/ with the benchmark's conftest in view must not import torch.
 Session state lives in ``config.stash``.
@@ -90,7 +92,54 @@ def pytest_configure(config: pytest.Config) -> None:
         or option(config, "conditions")
         or option(config, "fixtures-dir")
     ):
-        _session(config)
+        _refuse_a_path_pytest_took_for_a_test_path(config)
+        session = _session(config)
+        if option(config, "model") and not config.option.collectonly:  # listing the cells runs none
+            _refuse_unrunnable(session)
+
+
+def _refuse_a_path_pytest_took_for_a_test_path(config: pytest.Config) -> None:
+    """``--fixtures-dir PATH`` with a space: pytest picks its rootdir and config file before it knows this
+    plugin's options, so it took PATH for a test path, and a fixture folder in another clone made that clone's
+    pyproject.toml the session's configuration. The choice cannot be undone here, so it is refused when it
+    differs from the one the real test paths give; ``--fixtures-dir=PATH`` is read right."""
+    spellings = {"--vlmproprio-fixtures-dir", "--fixtures-dir", *SHORT_ALIASES["fixtures-dir"]}
+    given = list(config.invocation_params.args)
+    used = next((a for a in given[:-1] if a in spellings), None)
+    if used is None:
+        return
+    try:  # pytest's own rule for the choice (a private function: skip the check where it moved)
+        from _pytest.config.findpaths import determine_setup
+
+        rootpath, inipath, *_ = determine_setup(
+            inifile=config.option.inifilename,
+            override_ini=config.option.override_ini,
+            args=[str(a) for a in config.args],
+            rootdir_cmd_arg=config.option.rootdir or None,
+            invocation_dir=config.invocation_params.dir,
+        )
+    except (ImportError, TypeError):
+        return
+    if (rootpath, inipath) != (config.rootpath, config.inipath):
+        value = given[given.index(used) + 1]
+        raise pytest.UsageError(
+            f"{used} {value}: pytest took {value} for a test path when it chose its configuration "
+            f"({config.inipath or config.rootpath}); write {used}={value}"
+        )
+
+
+def _refuse_unrunnable(session: BenchSession) -> None:
+    """Models asked for by name that cannot run here stop the session once, before collection, with one line
+    each: failing every cell of such a model would repeat the same reason hundreds of times."""
+    reasons = []
+    for model in session.models:
+        avail = session.availability(model)
+        if not avail:
+            reasons.append(f"{model} cannot run in {session.mode} mode here: {avail.reason}")
+    if reasons:
+        from vlmproprio.secrets import scrub
+
+        raise pytest.UsageError(scrub("; ".join(reasons)))
 
 
 @pytest.hookimpl(optionalhook=True)
@@ -208,7 +257,7 @@ def _session(config: pytest.Config) -> BenchSession:
         return existing
     from vlmproprio.conditions import parse_conditions
     from vlmproprio.episodes import list_episode_ids
-    from vlmproprio.errors import VlmproprioError
+    from vlmproprio.errors import VlmproprioError, did_you_mean
     from vlmproprio.locations import find_repository_fixtures, resolve_fixtures
 
     explicit = option(config, "fixtures-dir")
@@ -231,7 +280,8 @@ def _session(config: pytest.Config) -> BenchSession:
     unknown = [e for e in episodes if e not in known]
     if unknown:
         raise pytest.UsageError(
-            f"--episodes: unknown episode(s) {', '.join(unknown)} in {fixtures} (known: {', '.join(sorted(known))})"
+            f"--episodes: unknown episode(s) {', '.join(unknown)}{did_you_mean(unknown[0], known)} in {fixtures} "
+            f"(known: {', '.join(sorted(known))})"
         )
     from vlmproprio.models import resolve_model
 

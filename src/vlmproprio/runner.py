@@ -28,7 +28,7 @@ from vlmproprio.backends.settings import BackendSettings
 from vlmproprio.cache import default_cache_dir
 from vlmproprio.conditions import Condition
 from vlmproprio.episodes import PIXEL_LEDGER_FILE, Episode, load_episodes, pixel_ledger
-from vlmproprio.errors import UsageError
+from vlmproprio.errors import UsageError, did_you_mean
 from vlmproprio.io import atomic_write_text, atomic_write_texts
 from vlmproprio.locations import refuse_nesting
 from vlmproprio.models import ModelRef, resolve_model
@@ -329,7 +329,10 @@ def run(plan: RunPlan) -> list[ModelRun]:
         by_id = {e.episode_id: e for e in peers}
         missing = [eid for eid in plan.episode_ids if eid not in by_id]
         if missing:
-            raise UsageError(f"unknown episode(s) {', '.join(missing)} in {plan.fixtures}; known: {', '.join(by_id)}")
+            hint = did_you_mean(missing[0], by_id)
+            raise UsageError(
+                f"unknown episode(s) {', '.join(missing)}{hint} in {plan.fixtures}; known: {', '.join(by_id)}"
+            )
         episodes = [by_id[eid] for eid in plan.episode_ids]
     earlier = check_run_folder(plan, episodes)
     try:

@@ -83,9 +83,11 @@ def test_plugin_empty_episodes_is_a_usage_error(tmp_path, figures):
 
 
 def test_plugin_fails_a_named_model_that_cannot_run(tmp_path, figures):
-    proc = _pytest(tmp_path, "--model", "gpt-4o", "--episodes", "door_00", "--conditions", "none", "-k", "test_counts")
-    assert proc.returncode == 1, proc.stdout[-2000:]  # not 0 with "all skipped"
-    assert "gpt-4o cannot run in" in proc.stdout and " skipped" not in proc.stdout.splitlines()[-1]
+    proc = _pytest(tmp_path, "--model", "gpt-4o")
+    assert proc.returncode == 4, proc.stdout[-2000:]  # a usage error, not 0 with "all skipped"
+    output = proc.stdout + proc.stderr
+    assert output.count("gpt-4o cannot run in") == 1, output[-3000:]  # once, not once per cell
+    assert len(output.splitlines()) <= 3 and "Traceback" not in output
     figures("small items", cases=1, fixed=1)
 
 

@@ -7,7 +7,7 @@ import argparse
 from collections.abc import Callable
 from pathlib import Path
 
-from vlmproprio.cli.texts import TEXTS
+from vlmproprio.cli.texts import MAINTAINER_COMMANDS, TEXTS
 from vlmproprio.options import CACHE_HELP, FIXTURES_HELP
 
 
@@ -28,7 +28,10 @@ def cache_root_of(args: argparse.Namespace) -> Path:
 def command(sub, name: str, func: Callable[[argparse.Namespace], int]) -> argparse.ArgumentParser:
     """The sub-command ``name`` (of ``cassette``: "cassette NAME"), with its texts from TEXTS, running ``func``."""
     help, description = TEXTS[name]
-    p = sub.add_parser(name.split()[-1], help=help, description=description)
+    if name in MAINTAINER_COMMANDS:  # a sub-parser given no help is left out of the command list
+        p = sub.add_parser(name.split()[-1], description=description or help)
+    else:
+        p = sub.add_parser(name.split()[-1], help=help, description=description)
     p.set_defaults(func=func)
     return p
 

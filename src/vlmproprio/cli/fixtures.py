@@ -85,7 +85,7 @@ def add_import_demos(sub) -> None:
     p.add_argument("--task", help="door | pick_place_cereal | pick_place_can | lift (default: from the file's env)")
     p.add_argument("--out", type=Path, required=True, help="fixture folder to write episodes/ and manifest.json into")
     p.add_argument("--camera", help="camera to render (default: the task's, e.g. vlmproprio_bins for pick-place)")
-    add_list(p, "--demos", "only these demos, e.g. demo_1,demo_3 (default: all)", "NAMES", spaces=True)
+    add_list(p, "--demos", "only these demos, e.g. demo_1,demo_3 (default: all)", "NAMES")
     p.add_argument(
         "--replay",
         choices=("auto", "actions", "states"),
@@ -101,5 +101,5 @@ def add_export_dataset(sub) -> None:
     p = command(sub, "export-dataset", cmd_export_dataset)
     p.add_argument("out", type=Path, metavar="OUT", help="folder to write (must be empty or absent)")
     add_fixtures(p)
-    add_list(p, "--episodes", "export these episodes only, a comma list or repeated (default: all)", "IDS", spaces=True)
+    add_list(p, "--episodes", "export these episodes only, a comma list or repeated (default: all)", "IDS")
     p.add_argument("--overwrite", action="store_true", help="replace an earlier export in OUT")

@@ -4,14 +4,17 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Callable
+from pathlib import Path
 
 from vlmproprio.cli.cassette import add_cassette
 from vlmproprio.cli.fixtures import add_export_dataset, add_fixture_commands, add_import_demos
 from vlmproprio.cli.models import add_make_tiny_model, add_models
 from vlmproprio.cli.power import add_power
-from vlmproprio.cli.report import add_compare, add_report
+from vlmproprio.cli.report import add_compare, add_leaderboard, add_report
 from vlmproprio.cli.run import add_run, add_show
 from vlmproprio.cli.score import add_score
+from vlmproprio.cli.texts import MAINTAINER_COMMANDS
+from vlmproprio.conditions import CONTROLS, PAPER_CONDITIONS
 
 EPILOG = """\
 typical use:
@@ -25,6 +28,7 @@ typical use:
 lists: --model, --conditions, --episodes ... take a comma list, may be repeated, or both.
 fixtures: --fixtures, else $VLMPROPRIO_FIXTURES, else the fixtures/ of the repository you are in.
 caches: --cache-dir, else $VLMPROPRIO_CACHE, else the user cache directory (~/.cache/vlmproprio).
+maintainer commands (not listed above): {maintainer}; each has --help.
 """
 
 
@@ -39,6 +43,7 @@ _SUBCOMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
     add_score,
     add_report,
     add_compare,
+    add_leaderboard,
     add_power,
     add_export_dataset,
     add_show,
@@ -49,9 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="vlmproprio",
         description="Does proprioception make a VLM's captions and subtask segmentations of robot "
-        "episodes better? Record episodes, caption them with a model under four state conditions "
-        "and four controls, score the captions and segmentations, and report.",
-        epilog=EPILOG,
+        f"episodes better? Record episodes, caption them with a model under {_count(PAPER_CONDITIONS)} state "
+        f"conditions and {_count(CONTROLS)} controls, score the captions and segmentations, and report.",
+        epilog=EPILOG.format(maintainer=", ".join(sorted(MAINTAINER_COMMANDS))),
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
@@ -59,6 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for add in _SUBCOMMANDS:
         add(sub)
+    _uniform_metavars(parser)
     return parser
 
 
@@ -69,3 +75,34 @@ def _version() -> str:
         return version("vlmproprio")
     except PackageNotFoundError:  # a source tree on the path without an install
         return "unknown (not installed)"
+
+
+def _count(items) -> str:
+    words = ("no", "one", "two", "three", "four", "five", "six", "seven", "eight", "nine", "ten")
+    return words[len(items)] if len(items) < len(words) else str(len(items))
+
+
+# One metavar style: a short word for what the value is, never the destination's name (FRAME_STRIDE).
+METAVARS_BY_DEST = {"base_url": "URL", "api_key_env": "VAR", "episode": "ID", "condition": "COND"}
+
+
+def _metavar_of(action: argparse.Action) -> str:
+    if action.dest in METAVARS_BY_DEST:
+        return METAVARS_BY_DEST[action.dest]
+    if action.type is int:
+        return "N"
+    if action.type is float or getattr(action.type, "__name__", "") in ("finite_float", "unit_interval"):
+        return "X"
+    if action.type is Path:
+        return "PATH"
+    return "NAME"
+
+
+def _uniform_metavars(parser: argparse.ArgumentParser) -> None:
+    """Give every value-taking option without a metavar of its own one from ``_metavar_of``."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _uniform_metavars(sub)
+        elif action.option_strings and action.nargs != 0 and action.metavar is None and not action.choices:
+            action.metavar = _metavar_of(action)

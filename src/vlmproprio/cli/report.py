@@ -1,4 +1,5 @@
-"""The commands that read scores: report (tables, plots, HTML; scoring first when there are none), compare."""
+"""The commands that read scores: report (tables, plots, HTML; scoring first when there are none), compare,
+leaderboard."""
 
 from __future__ import annotations
 
@@ -29,8 +30,21 @@ def score_and_report(run_dir: Path, fixtures: Path | None, cache: Path, *, progr
         bar.update()
         index = write_report(run_dir, fixtures=fixtures, cache_dir=cache)
         bar.update()
+    print_results(run_dir)
     print(f"report: {index}")
     return 0
+
+
+def print_results(run_dir: Path) -> None:
+    """The scores on screen: per model the headline means per condition, then the warnings and verdicts."""
+    from vlmproprio.report.data import load_run_scores
+    from vlmproprio.report.tables import verdict_lines
+    from vlmproprio.report.terminal import terminal_summary
+
+    s = load_run_scores(run_dir)
+    print(terminal_summary(s), end="")
+    for line in verdict_lines(s):
+        print(line)
 
 
 def cmd_report(args: argparse.Namespace) -> int:
@@ -58,6 +72,7 @@ def cmd_report(args: argparse.Namespace) -> int:
             cache_dir=cache,
         )
         bar.update()
+    print_results(args.run_dir)
     print(f"report: {index}")
     return 0
 
@@ -115,3 +130,32 @@ def add_compare(sub) -> None:
     add_list(p, "--task", "door, pick_place, all: a comma list or repeated (default: every one)", "TASKS")
     add_list(p, "--metrics", "score columns, a comma list or repeated (default: the main metrics)", "COLS")
     p.add_argument("--out", type=Path, help="also write the comparison as Markdown to this file")
+
+
+def cmd_leaderboard(args: argparse.Namespace) -> int:
+    from vlmproprio.report.leaderboard import LEADERBOARD_METRICS, build_leaderboard, write_leaderboard
+
+    board = build_leaderboard(
+        args.runs,
+        metrics=split_list(args.metrics) or LEADERBOARD_METRICS,
+        a=args.a,
+        b=args.b,
+        task=args.task,
+    )
+    print(board.to_markdown(), end="")
+    if args.out:
+        paths = write_leaderboard(board, args.out)
+        print(f"leaderboard: {paths['html']}")
+    return 0
+
+
+def add_leaderboard(sub) -> None:
+    p = command(sub, "leaderboard", cmd_leaderboard)
+    p.add_argument("runs", type=Path, nargs="+", metavar="RUN_DIR", help="scored run directories (any number)")
+    p.add_argument(
+        "--a", default="both", metavar="COND", help="condition A of the paired difference A - B (default: both)"
+    )
+    p.add_argument("--b", default="none", metavar="COND", help="condition B (default: none)")
+    p.add_argument("--task", default="all", metavar="TASK", help="door, pick_place or all (default: all)")
+    add_list(p, "--metrics", "score columns, a comma list or repeated (default: the headline metrics)", "COLS")
+    p.add_argument("--out", type=Path, metavar="DIR", help="also write index.html, leaderboard.md/.png/.json here")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
 from vlmproprio.cli.arguments import (
@@ -38,6 +39,9 @@ def _check_run_ranges(args: argparse.Namespace) -> None:
     """Numbers whose range argparse cannot check; the messages the backends and pipeline would give, earlier."""
     if args.max_new_tokens is not None and args.max_new_tokens < 1:
         raise UsageError(f"--max-new-tokens must be at least 1, got {args.max_new_tokens}")
+    check_range("--k", args.k, 1)
+    check_range("--frame-stride", args.frame_stride, 1)
+    check_range("--max-images-p3", args.max_images_p3, 1)
     check_range("--batch-size", args.batch_size, 1)
     check_range("--threads", args.threads, 1)
     check_range("--batch-tokens", args.batch_tokens, 1)
@@ -75,6 +79,14 @@ def cmd_run(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
         workers=None if args.workers is None else parse_workers(args.workers, "--workers"),
     )
+    if args.limit is not None:
+        plan = replace(plan, episode_ids=_first_episodes(plan, args.limit))
+    if args.dry_run:
+        from vlmproprio.preview import format_costs, preview_run
+
+        print(format_costs(preview_run(plan)), end="")
+        print("dry run: no model was called and nothing was written")
+        return 0
     runs = run(plan)
     if args.mode == "record":
         embed_recorded_sidecars(runs, plan.out, plan.fixtures)
@@ -83,6 +95,15 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.report:
         return score_and_report(plan.out, fixtures, cache_root, progress=not args.no_progress)
     return 0
+
+
+def _first_episodes(plan, limit: int) -> tuple[str, ...]:
+    """``--limit N``: the first N of the chosen episodes (of every episode when none were named)."""
+    from vlmproprio.episodes import list_episode_ids
+
+    check_range("--limit", limit, 1)
+    ids = plan.episode_ids or tuple(list_episode_ids(plan.fixtures))
+    return tuple(ids[:limit])
 
 
 def answer_summary(r) -> str:
@@ -116,6 +137,15 @@ def add_run(sub) -> None:
     p.add_argument("--out", type=Path, help="run directory (default: runs/latest)")
     add_cache_dir(p)
     p.add_argument("--report", action="store_true", help="also score the run and write its report")
+    p.add_argument(
+        "--dry-run",
+        action="store_true",
+        help="print the requests per model, process and condition, the images sent and the answers already "
+        "cached, then stop: no model is called, nothing is written",
+    )
+    p.add_argument(
+        "--limit", type=int, metavar="N", help="only the first N episodes (of --episodes, or of all): a quick try"
+    )
     add_workers(
         p, "captioning with a model that is not called (the rule-based captioners, a cassette's replay)", "transcripts"
     )

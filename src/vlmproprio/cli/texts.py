@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
+# Commands for the suite's maintainers: not in `vlmproprio --help`'s list (its epilog names them), still runnable.
+MAINTAINER_COMMANDS = frozenset({"manifest", "make-tiny-model"})
+
 # Sub-command texts: the line the top-level --help lists, then the description of the command's own --help.
 TEXTS: dict[str, tuple[str, str | None]] = {
     "verify": (
         "check fixtures against their manifest and summarise them",
-        None,
+        "Check every file of a fixture folder (episodes, cassettes, caption embeddings) against the sha256 "
+        "digests in its manifest.json, and print what it holds: episodes per task, frames, cassettes. Exits "
+        "non-zero, naming the file, when one is missing, changed or not listed.",
     ),
     "manifest": (
-        "rewrite the fixtures' manifest.json from the files present",
-        None,
+        "rewrite the fixtures' manifest.json from the files present (maintainers)",
+        "Rewrite manifest.json from the files of a fixture folder, after a deliberate change to them (a "
+        "re-recording, a new cassette). `verify` then checks against the new digests.",
     ),
     "record": (
         "(re)record the episodes with robosuite (needs the [record] extra)",
@@ -75,6 +81,13 @@ TEXTS: dict[str, tuple[str, str | None]] = {
         "Print the differences B - A of the caption and segmentation metrics per task and "
         "condition, paired by episode, with bootstrap 95% CIs and sign-flip p-values. Rows are matched on "
         "model/task/condition; give --model-a/--model-b to compare two models (inside one run: omit RUN_B).",
+    ),
+    "leaderboard": (
+        "many runs or models side by side: one table, one plot, the verdicts",
+        "Print a table of every model in the given scored runs (any number: a tox matrix's runs, a lab's "
+        "models) against the headline metrics: the mean under --a and --b and the paired difference with its "
+        "bootstrap 95% CI, then each model's verdicts and warnings. With --out, also write index.html, "
+        "leaderboard.md, leaderboard.png (the differences with their CIs) and leaderboard.json.",
     ),
     "power": (
         "what 10 Door + 12 bin episodes can detect: power curves and minimal detectable effects",

@@ -2,7 +2,7 @@
 
 ``run.json`` and every ``scores/<name>.json`` have a schema ``<name>.schema.json`` here, versioned by its
 ``$id`` (``.../<name>/v1.json``) and ``x-schema-version``; docs/results.md documents the fields. Load one with
-``load_schema("rows")`` and check a document with any JSON Schema validator (``jsonschema``: the dev extra), or
+``load_schema("rows")`` and check a document with any JSON Schema validator (``jsonschema``, a dependency of the package), or
 ``validate_run(RUN_DIR)`` which checks them all.
 """
 
@@ -53,7 +53,7 @@ def load_schema(name: str) -> dict:
 
 
 def validate_run(run_dir: str | Path) -> list[str]:
-    """Check every schema'd file present in ``run_dir``; returns the files checked. Needs ``jsonschema``."""
+    """Check every schema'd file present in ``run_dir``; returns the files checked."""
     import jsonschema
 
     checked = []
