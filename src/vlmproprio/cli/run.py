@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from vlmproprio.cli.arguments import (
@@ -48,7 +49,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from vlmproprio.parallel import parse_workers
     from vlmproprio.pipeline import PipelineSettings
     from vlmproprio.prompts import PromptOptions
-    from vlmproprio.runner import RunPlan, run
+    from vlmproprio.runner import RunPlan, answer_problem_warning, run
 
     _check_run_ranges(args)
     fixtures = fixtures_of(args)
@@ -74,12 +75,16 @@ def cmd_run(args: argparse.Namespace) -> int:
         backend=backend_settings(args, home=cache_root),
         progress=not args.no_progress,
         workers=None if args.workers is None else parse_workers(args.workers, "--workers"),
+        allow_empty_answers=args.allow_empty_answers,
     )
     runs = run(plan)
     if args.mode == "record":
         embed_recorded_sidecars(runs, plan.out, plan.fixtures)
     for r in runs:
         print(f"{r.name}: {len(r.transcripts)} transcripts in {plan.out} ({r.mode}); {answer_summary(r)}")
+        warning = answer_problem_warning(r)
+        if warning:
+            print(f"warning: {warning}", file=sys.stderr)
     if args.report:
         return score_and_report(plan.out, fixtures, cache_root, progress=not args.no_progress)
     return 0
@@ -116,6 +121,12 @@ def add_run(sub) -> None:
     p.add_argument("--out", type=Path, help="run directory (default: runs/latest)")
     add_cache_dir(p)
     p.add_argument("--report", action="store_true", help="also score the run and write its report")
+    p.add_argument(
+        "--allow-empty-answers",
+        action="store_true",
+        help="record: write answers that hold no caption (empty, refused, filtered, tool calls) or came from "
+        "another model into the cassette too (refused by default)",
+    )
     add_workers(
         p, "captioning with a model that is not called (the rule-based captioners, a cassette's replay)", "transcripts"
     )
