@@ -35,7 +35,7 @@ from vlmproprio.locations import refuse_nesting
 from vlmproprio.models import ModelRef, resolve_model
 from vlmproprio.parallel import map_groups, resolve_workers
 from vlmproprio.pipeline import PipelineSettings, answer_chunk, calls_per_episode, caption_episodes, episode_images
-from vlmproprio.transcripts import Transcript, answer_problems, transcript_files
+from vlmproprio.transcripts import Transcript, answer_problems, frames_missing_by_problem, transcript_files
 
 RUN_FILE = "run.json"
 RUN_VERSION = 1
@@ -106,8 +106,8 @@ def answer_problem_warning(r: ModelRun) -> str | None:
     requests = sum(len(t.requests) for t in r.transcripts)
     frames = [f for t in r.transcripts for f in t.frames]
     missing = sum(f.status == "missing" for f in frames)
-    share = missing / len(frames) if frames else 0.0
-    lead = "MOST CAPTIONS ARE MISSING: " if share >= MOST_MISSING_SHARE else ""
+    lost = sum(frames_missing_by_problem(t) for t in r.transcripts)
+    lead = "MOST CAPTIONS ARE MISSING: " if frames and lost / len(frames) >= MOST_MISSING_SHARE else ""
     return (
         f"{lead}{r.name}: {sum(problems.values())} of {requests} answers came back without a plain answer "
         f"({problem_counts_text(problems)}); {missing} of {len(frames)} frame captions are missing"

@@ -160,6 +160,15 @@ def answer_problems(transcripts: Sequence[Transcript]) -> dict[str, int]:
     return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
 
 
+def frames_missing_by_problem(t: Transcript) -> int:
+    """Frame captions of ``t`` that are missing and whose Process 1 answer had a problem (RequestRecord.problem)."""
+    flagged = {r.group for r in t.requests if r.stage == "p1" and r.problem}
+    if not flagged:
+        return 0
+    members = {i for s in t.scenes if s.group in flagged for i in s.frame_indices}
+    return sum(1 for f in t.frames if f.status == "missing" and f.frame_index in members)
+
+
 def cell_key(model: str, episode_id: str, condition: str) -> str:
     """One (model, episode, condition) cell: the key of its entry in scores/audit.json and traces.json, and its
     transcript's path below RUN_DIR/transcripts/ without the suffix."""
