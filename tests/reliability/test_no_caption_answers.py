@@ -6,7 +6,8 @@ without a message, everything in the reasoning field (a reasoning parser on a mo
 an answer from a model other than the one asked for. Each class, end to end against the loopback server:
 
 * the run names it: one warning line with the class and how many requests, and the transcript records the
-  class (``problem``), the server's finish reason and the model it says answered, per request;
+  class (``problem``), the server's finish reason and the model it says answered, per request (and
+  ``vlmproprio show`` prints them below the answer);
 * record mode refuses to write a cassette of such answers (one error line naming the class, the count and
   ``--allow-empty-answers``), leaves no cassette behind, and writes it when the flag is given;
 * the score's sanity check says so when most of a model's frame captions are missing for such reasons.
@@ -102,6 +103,10 @@ def test_a_few_such_answers_are_named_too(fixtures, tmp_path):
     (warning,) = [line for line in proc.stderr.splitlines() if line.startswith("warning:")]
     assert f"1 of {sent} answers" in warning and "refusal 1 (" in warning and "MOST" not in warning
     assert sum(r.get("problem") == "refusal" for r in _requests(tmp_path / "run")) == 1
+    show = cli_in_process(["show", tmp_path / "run", "--episode", "door_00", "--condition", "none"])
+    assert show.returncode == 0, show.stderr
+    (line,) = [line for line in show.stdout.splitlines() if "answer problem" in line]
+    assert "refusal (the model refused" in line and "response model fake-vlm" in line
 
 
 def test_plain_answers_give_no_warning_and_record(fixtures, tmp_path):
