@@ -12,6 +12,11 @@ the batch stops at once (queued requests are cancelled, so a dead server fails
 in seconds, not once per request) and a BackendError says what happened, with
 the answers already received attached (``BackendError.partial``) for the cache.
 
+Answers. The answer is the first choice's ``content``; the reasoning a server returns beside it (``reasoning``,
+``reasoning_content``) is ``Answer.reasoning``, never part of the text. An answer that holds no caption, or that
+the response says another model gave, is classed (``chat.ANSWER_PROBLEMS``, in ``AnswerMeta.extra``) from the
+response's own fields: refusal, finish reason, tool calls, model.
+
 Secrets. The API key is read from the environment only (``OPENAI_API_KEY`` or
 the variable named by ``api_key_env``) and handed to the SDK client; it is
 never stored in the identity, metadata, cache, cassettes, logs or messages.
