@@ -36,7 +36,17 @@ def _transcript(episode: str, condition: str = "none") -> Transcript:
     )
 
 
-AUDIT_FIELDS = {"span", "removed", "reasoning", "final_span", "final_removed"}
+# fields written only when not empty (a clean caption, a backend that reports no finish reason or model)
+AUDIT_FIELDS = {
+    "span",
+    "removed",
+    "reasoning",
+    "final_span",
+    "final_removed",
+    "finish_reason",
+    "response_model",
+    "problem",
+}
 
 
 def _without_empty_audit(d):

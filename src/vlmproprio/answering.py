@@ -27,7 +27,13 @@ from vlmproprio.cache import (
     key_identity,
     request_key,
 )
-from vlmproprio.cassettes import ReplayMissError, replay_miss_message, scrubbed_entry, write_cassette
+from vlmproprio.cassettes import (
+    ReplayMissError,
+    check_recordable,
+    replay_miss_message,
+    scrubbed_entry,
+    write_cassette,
+)
 from vlmproprio.chat import Answer, ChatRequest
 from vlmproprio.episodes import register_fixture_file
 from vlmproprio.errors import UsageError, VlmproprioError
@@ -100,10 +106,12 @@ class Answerer:
         out = [a if a is not None else by_key[k] for k, a in zip(keys, results, strict=True)]
         return out
 
-    def export_cassette(self, path: Path | str, *, merge: bool = True) -> Path:
-        """Write the answers used in this session (record mode) to a cassette."""
+    def export_cassette(self, path: Path | str, *, merge: bool = True, allow_empty: bool = False) -> Path:
+        """Write the answers used in this session (record mode) to a cassette; answers that hold no caption are
+        refused unless ``allow_empty`` (cassettes.check_recordable)."""
         if not self.used:
             raise CacheError("nothing to export: no answers were used in this session")
+        check_recordable(self.used.values(), self.model, path, allow_empty=allow_empty)
         return write_cassette(path, self.model, self.identity, self.used.values(), merge=merge)
 
     # -------------------------------------------------------------------------------- internals
@@ -155,9 +163,9 @@ class Answerer:
 
     def _keep(self, key: str, request: ChatRequest, answer: Answer) -> Answer:
         # a server that echoes the API key in an answer must not get it into the cache, cassette or transcripts
-        text = scrub(answer.text)
-        if text != answer.text:
-            answer = replace(answer, text=text)
+        text, reasoning = scrub(answer.text), scrub(answer.reasoning)
+        if (text, reasoning) != (answer.text, answer.reasoning):
+            answer = replace(answer, text=text, reasoning=reasoning)
         storing = self.cache is not None and self.mode != "replay"
         if storing or self.mode == "record":  # replay keeps no entry: building and scrubbing one is wasted
             entry = scrubbed_entry(CacheEntry.from_answer(key, answer, request.tag, self.model, self.identity))
@@ -173,14 +181,20 @@ class Answerer:
 
 @contextmanager
 def open_answerer(
-    model: str | ModelRef, mode: str, settings: BackendSettings | None = None, cache_dir: Path | str | None = None
+    model: str | ModelRef,
+    mode: str,
+    settings: BackendSettings | None = None,
+    cache_dir: Path | str | None = None,
+    *,
+    allow_empty: bool = False,
 ) -> Iterator[Answerer]:
     """The answerer for ``model`` in ``mode`` (``auto`` made concrete), as captioning and the judge use it.
 
     Backend from the registry; the response cache in ``cache_dir`` (none in replay, where answers come only from
     the committed cassette, so a stale local cache cannot mask a missing answer); in record mode, on a clean exit,
     the answers used are merged into the model's cassette (``settings.cassette_dir``/<slug>.jsonl), which is
-    registered in the fixture manifest, and :attr:`Answerer.cassette` says where."""
+    registered in the fixture manifest, and :attr:`Answerer.cassette` says where. Answers that hold no caption
+    (cassettes.check_recordable) stop the recording with a CassetteError unless ``allow_empty``."""
     settings = settings or BackendSettings()
     ref = resolve_model(model)
     mode = resolve_mode(ref, mode, settings)
@@ -191,7 +205,7 @@ def open_answerer(
         answerer = Answerer(backend, mode=mode, cache=cache, model=ref.slug)
         yield answerer
         if mode == "record" and answerer.used:
-            answerer.cassette = answerer.export_cassette(ref.cassette(settings.cassette_dir))
+            answerer.cassette = answerer.export_cassette(ref.cassette(settings.cassette_dir), allow_empty=allow_empty)
             register_fixture_file(answerer.cassette)
     finally:
         backend.close()

@@ -41,6 +41,10 @@ unpickle anything, and the first writer of a key wins (``add``), so an
 answer is stored once. The cassette file format is vlmproprio.cassettes;
 answering from cache, cassette or model is vlmproprio.answering.
 
+An entry's optional ``reasoning`` field holds the reasoning a server returned beside the answer
+(``Answer.reasoning``); it is written only when not empty, so the record of an answer without one, and its
+checksum, are what they always were.
+
 Answer statuses: ``ok``, or ``empty`` (the model answered nothing). Empty
 answers are kept so that a replay gives exactly what the live run gave, but
 they are not successes: live mode asks the model again. Failed requests (an
@@ -184,6 +188,7 @@ class CacheEntry:
     status: str = "ok"
     model: str = ""
     identity: dict = field(default_factory=dict)
+    reasoning: str = ""  # the server's reasoning beside the answer (Answer.reasoning); never part of ``text``
 
     @classmethod
     def from_answer(cls, key: str, answer: Answer, tag: RequestTag, model: str, identity: dict) -> CacheEntry:
@@ -195,18 +200,24 @@ class CacheEntry:
             status="ok" if answer.text.strip() else "empty",
             model=model,
             identity=key_identity(identity),
+            reasoning=answer.reasoning,
         )
 
     def to_answer(self, *, from_cache: bool = True) -> Answer:
-        return Answer(text=self.text, meta=AnswerMeta.from_dict(self.meta), key=self.key, from_cache=from_cache)
+        meta = AnswerMeta.from_dict(self.meta)
+        return Answer(text=self.text, meta=meta, key=self.key, from_cache=from_cache, reasoning=self.reasoning)
 
     def cache_record(self) -> dict:
         rec = asdict(self)
+        if not self.reasoning:  # an answer without reasoning is the record (and checksum) it always was
+            del rec["reasoning"]
         rec["checksum"] = checksum(rec)
         return rec
 
     def cassette_record(self) -> dict:
         rec = {"key": self.key, "text": self.text, "meta": self.meta, "tag": self.tag, "status": self.status}
+        if self.reasoning:
+            rec["reasoning"] = self.reasoning
         rec["checksum"] = checksum(rec)
         return rec
 
@@ -224,6 +235,8 @@ def entry_from_record(rec: object, *, model: str = "", identity: dict | None = N
             raise ValueError(f"field {name!r} missing or not a {typ.__name__}")
     if rec["status"] not in STATUSES:
         raise ValueError(f"unknown status {rec['status']!r}")
+    if not isinstance(rec.get("reasoning", ""), str):
+        raise ValueError("field 'reasoning' is not a str")
     try:
         AnswerMeta.from_dict(rec["meta"])
     except TypeError as exc:
@@ -237,6 +250,7 @@ def entry_from_record(rec: object, *, model: str = "", identity: dict | None = N
         status=rec["status"],
         model=rec_model if isinstance(rec_model, str) else model,
         identity=rec_identity if isinstance(rec_identity, dict) else {},
+        reasoning=rec.get("reasoning", ""),
     )
 
 

@@ -2,10 +2,15 @@
 
 ``fixtures/responses/<model slug>.jsonl``: line 1 is a header (model name,
 identity, key version, checksum), then one answer per line
-``{key, text, meta, tag, status, checksum}`` sorted by key, each line a
+``{key, text, meta, tag, status, checksum}`` sorted by key (and ``reasoning``
+when the server returned some beside the answer), each line a
 compact JSON object with sorted keys, so re-recording gives small diffs. Keys
 and entries are those of vlmproprio.cache; a line whose checksum does not
 match is an error naming the file and line.
+
+A cassette is committed as what the model answers, so answers that hold no caption (empty, a refusal, a tool
+call, a content filter, an answer cut off before any text) or that another model gave are refused in it
+(``check_recordable``) unless the recording says it wants them (``--allow-empty-answers``).
 """
 
 from __future__ import annotations
@@ -24,7 +29,7 @@ from vlmproprio.cache import (
     entry_from_record,
     key_identity,
 )
-from vlmproprio.chat import RequestTag
+from vlmproprio.chat import ANSWER_PROBLEMS, RequestTag, answer_problem
 from vlmproprio.errors import VlmproprioError
 from vlmproprio.io import atomic_write_text, loads_json
 from vlmproprio.secrets import scrub, scrub_obj
@@ -157,7 +162,7 @@ def write_cassette(
             merged.update(old.entries)
     for e in map(scrubbed_entry, entries):
         old = merged.get(e.key)
-        if old is None or (old.text, old.status) != (e.text, e.status):
+        if old is None or (old.text, old.status, old.reasoning) != (e.text, e.status, e.reasoning):
             merged[e.key] = e  # an unchanged answer keeps its old line (and latency): re-recording diffs stay small
     lines = [canonical_json(cassette_header(model, ident))]
     lines += [canonical_json(merged[k].cassette_record()) for k in sorted(merged)]
@@ -170,13 +175,53 @@ def _describe(identity: dict) -> str:
 
 
 def scrubbed_entry(entry: CacheEntry) -> CacheEntry:
-    """``entry`` with secrets masked in its answer text and metadata (unchanged when it holds none)."""
-    text, meta = scrub(entry.text), scrub_obj(entry.meta)
-    return entry if (text, meta) == (entry.text, entry.meta) else replace(entry, text=text, meta=meta)
+    """``entry`` with secrets masked in its answer text, reasoning and metadata (unchanged when it holds none)."""
+    text, meta, reasoning = scrub(entry.text), scrub_obj(entry.meta), scrub(entry.reasoning)
+    if (text, meta, reasoning) == (entry.text, entry.meta, entry.reasoning):
+        return entry
+    return replace(entry, text=text, meta=meta, reasoning=reasoning)
 
 
-def export_cassette(cache: ResponseCache, model: str, path: Path | str, *, merge: bool = True) -> tuple[Path, int]:
-    """Write every cached answer of ``model`` (its slug as stored in the cache) to a cassette."""
+ALLOW_EMPTY_FLAG = "--allow-empty-answers"
+
+
+def unrecordable(entries: Iterable[CacheEntry]) -> dict[str, int]:
+    """How many answers of each kind a cassette should not hold: by chat.ANSWER_PROBLEMS class, "empty" for an
+    empty answer with none, and "other_model" even with text (it is another model's answer); a text cut off at
+    the token limit still holds captions and is kept."""
+    counts: dict[str, int] = {}
+    for e in entries:
+        problem = answer_problem(e.meta)
+        if e.status != "ok" or problem == "other_model":
+            name = problem or "empty"
+            counts[name] = counts.get(name, 0) + 1
+    return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def problem_counts_text(counts: dict[str, int]) -> str:
+    """'refusal 12 (the model refused (message.refusal)), empty 1 (...)'."""
+    return ", ".join(f"{name} {n} ({ANSWER_PROBLEMS.get(name, 'no text')})" for name, n in counts.items())
+
+
+def check_recordable(entries: Iterable[CacheEntry], model: str, path: Path | str, *, allow_empty: bool) -> None:
+    """Refuse to write answers that hold no caption into ``path`` unless ``allow_empty``: a committed cassette
+    of refusals or empty answers would replay as a model that said nothing."""
+    entries = list(entries)
+    bad = unrecordable(entries)
+    if bad and not allow_empty:
+        raise CassetteError(
+            f"not writing {path}: {sum(bad.values())} of {len(entries)} answers of {model} hold no caption or are "
+            f"another model's: {problem_counts_text(bad)}. Fix the server or the request and record again (live "
+            f"and record mode ask for empty answers again), or pass {ALLOW_EMPTY_FLAG} to write them anyway; the "
+            "answers stay in the response cache"
+        )
+
+
+def export_cassette(
+    cache: ResponseCache, model: str, path: Path | str, *, merge: bool = True, allow_empty: bool = False
+) -> tuple[Path, int]:
+    """Write every cached answer of ``model`` (its slug as stored in the cache) to a cassette; answers that
+    hold no caption are refused unless ``allow_empty`` (check_recordable)."""
     entries = list(cache.entries(model=model))
     if not entries:
         present = cache.models()
@@ -192,6 +237,7 @@ def export_cassette(cache: ResponseCache, model: str, path: Path | str, *, merge
             f"cache {cache.directory} holds answers of {model!r} from {len(identities)} different identities "
             f"({listed}); a cassette holds one: use a fresh cache directory per model revision"
         )
+    check_recordable(entries, model, path, allow_empty=allow_empty)
     return write_cassette(path, model, entries[0].identity, entries, merge=merge), len(entries)
 
 

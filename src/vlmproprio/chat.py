@@ -161,7 +161,35 @@ def _copy_data(obj):
 
 @dataclass(frozen=True)
 class Answer:
+    """What a model answered. ``reasoning``: the reasoning a server returned beside the answer (the
+    ``reasoning`` / ``reasoning_content`` field of vLLM, SGLang, OpenRouter), never part of ``text`` and never
+    parsed for a caption."""
+
     text: str
     meta: AnswerMeta
     key: str = ""
     from_cache: bool = False
+    reasoning: str = ""
+
+
+# Why an answer holds no caption (or may not be the asked model's), as the backend saw it in the response; kept
+# as ``AnswerMeta.extra["answer_problem"]``, only on answers that have one. Each is named in the run's warnings,
+# the transcript and the score meta, and an answer with one is refused in a cassette unless asked for.
+ANSWER_PROBLEMS: dict[str, str] = {
+    "refusal": "the model refused (message.refusal)",
+    "content_filter": "the server's content filter stopped the answer (finish_reason content_filter)",
+    "tool_calls": "the model called a tool instead of answering (message.tool_calls)",
+    "length": "the answer was cut off at the token limit (finish_reason length); raise --max-new-tokens",
+    "reasoning_only": "the server put everything in the reasoning field and left the answer empty (a reasoning "
+    "parser applied to a model that does not think, e.g. vLLM --reasoning-parser)",
+    "empty": "the first choice held no text and gave no reason",
+    "other_model": "the response names another model than the one asked for",
+}
+
+
+def answer_problem(meta: AnswerMeta | dict) -> str:
+    """The ANSWER_PROBLEMS class the backend recorded on an answer ("" when none); ``meta`` as an
+    AnswerMeta or its dict (a cache entry's)."""
+    extra = meta.extra if isinstance(meta, AnswerMeta) else meta.get("extra")
+    value = extra.get("answer_problem", "") if isinstance(extra, dict) else ""
+    return value if isinstance(value, str) and value in ANSWER_PROBLEMS else ""

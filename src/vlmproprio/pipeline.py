@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from vlmproprio import parsing, prompts
-from vlmproprio.chat import Answer, ChatRequest, GenerationConfig, ImagePart, RequestTag
+from vlmproprio.chat import Answer, ChatRequest, GenerationConfig, ImagePart, RequestTag, answer_problem
 from vlmproprio.conditions import Condition, FrameStates, frame_states
 from vlmproprio.episodes import Episode, frame_images
 from vlmproprio.errors import UsageError
@@ -143,8 +143,19 @@ class CellRun:
         )
 
     def _record(self, stage: str, group: int, answer: Answer, reasoning: str) -> None:
+        extra = answer.meta.extra if isinstance(answer.meta.extra, dict) else {}
         self.records.append(
-            RequestRecord(stage, group, answer.key, answer.from_cache, answer.meta.latency_s, reasoning)
+            RequestRecord(
+                stage,
+                group,
+                answer.key,
+                answer.from_cache,
+                answer.meta.latency_s,
+                "\n\n".join(r for r in (answer.reasoning, reasoning) if r),  # the server's field, then the text's
+                finish_reason=_reported(extra, "finish_reason"),
+                response_model=_reported(extra, "response_model"),
+                problem=answer_problem(answer.meta),
+            )
         )
 
     # stages ----------------------------------------------------------------------------------
@@ -223,6 +234,11 @@ class CellRun:
             final_span=final_span,
             final_removed=final_removed,
         )
+
+
+def _reported(extra: dict, name: str) -> str:
+    value = extra.get(name, "")
+    return value if isinstance(value, str) else ""
 
 
 def _audit(p: parsing.Parsed) -> tuple[str, tuple[str, ...]]:

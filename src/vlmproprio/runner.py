@@ -26,6 +26,7 @@ from urllib.parse import urlsplit, urlunsplit
 from vlmproprio.answering import Answerer, open_answerer
 from vlmproprio.backends.settings import BackendSettings
 from vlmproprio.cache import default_cache_dir
+from vlmproprio.cassettes import problem_counts_text
 from vlmproprio.conditions import Condition
 from vlmproprio.episodes import PIXEL_LEDGER_FILE, Episode, load_episodes, pixel_ledger
 from vlmproprio.errors import UsageError, did_you_mean
@@ -34,7 +35,7 @@ from vlmproprio.locations import refuse_nesting
 from vlmproprio.models import ModelRef, resolve_model
 from vlmproprio.parallel import map_groups, resolve_workers
 from vlmproprio.pipeline import PipelineSettings, answer_chunk, calls_per_episode, caption_episodes, episode_images
-from vlmproprio.transcripts import Transcript, transcript_files
+from vlmproprio.transcripts import Transcript, answer_problems, frames_missing_by_problem, transcript_files
 
 RUN_FILE = "run.json"
 RUN_VERSION = 1
@@ -57,6 +58,7 @@ class RunPlan:
     # processes that caption with a model whose answers are pure (Answerer.pure: the reference captioners, a
     # cassette's replay); None: vlmproprio.parallel's default. The transcripts are the same with any number.
     workers: int | None = None
+    allow_empty_answers: bool = False  # record: write answers that hold no caption into the cassette too
 
     def __post_init__(self) -> None:
         # the one place a run's model names are parsed: an unknown or unsafe name fails before any work
@@ -79,12 +81,37 @@ class ModelRun:
     cassette: str | None = None
 
     @property
+    def answer_problems(self) -> dict[str, int]:
+        """Requests whose answer holds no caption or came from another model, by class (chat.ANSWER_PROBLEMS)."""
+        return answer_problems(self.transcripts)
+
+    @property
     def name(self) -> str:
         return self.model.name
 
     @property
     def slug(self) -> str:
         return self.model.slug
+
+
+MOST_MISSING_SHARE = 0.5  # frame captions missing, at least this share with answer problems: most are lost
+
+
+def answer_problem_warning(r: ModelRun) -> str | None:
+    """One line naming the answers of ``r`` that hold no caption (or came from another model): how many
+    requests of each class and how many frame captions are missing; None when every answer was a plain one."""
+    problems = r.answer_problems
+    if not problems:
+        return None
+    requests = sum(len(t.requests) for t in r.transcripts)
+    frames = [f for t in r.transcripts for f in t.frames]
+    missing = sum(f.status == "missing" for f in frames)
+    lost = sum(frames_missing_by_problem(t) for t in r.transcripts)
+    lead = "MOST CAPTIONS ARE MISSING: " if frames and lost / len(frames) >= MOST_MISSING_SHARE else ""
+    return (
+        f"{lead}{r.name}: {sum(problems.values())} of {requests} answers came back without a plain answer "
+        f"({problem_counts_text(problems)}); {missing} of {len(frames)} frame captions are missing"
+    )
 
 
 def package_versions() -> dict[str, str]:
@@ -135,6 +162,7 @@ def _model_record(r: ModelRun) -> dict:
         "stats": r.stats,
         "cassette": r.cassette,
         "transcripts": len(r.transcripts),
+        **({"answer_problems": problems} if (problems := r.answer_problems) else {}),
     }
 
 
@@ -244,7 +272,7 @@ def run_model(
     model: ModelRef, plan: RunPlan, episodes: list[Episode], peers: list[Episode], settings: BackendSettings
 ) -> ModelRun:
     pipeline = plan.pipeline_for(model)
-    with open_answerer(model, plan.mode, settings, plan.cache_dir) as answerer:
+    with open_answerer(model, plan.mode, settings, plan.cache_dir, allow_empty=plan.allow_empty_answers) as answerer:
         transcripts = caption_and_write(model, plan, episodes, peers, answerer)
     cassette = str(answerer.cassette) if answerer.cassette else None
     stats = dict(answerer.stats)

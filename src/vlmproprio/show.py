@@ -16,7 +16,7 @@ from pathlib import Path
 
 from vlmproprio import prompts
 from vlmproprio.cache import request_key
-from vlmproprio.chat import ChatRequest, ImagePart
+from vlmproprio.chat import ANSWER_PROBLEMS, ChatRequest, ImagePart
 from vlmproprio.conditions import frame_states, get_condition
 from vlmproprio.episodes import frame_images, load_episodes
 from vlmproprio.errors import UsageError
@@ -146,7 +146,14 @@ def _audit_lines(t: Transcript, stage: str, group: int, groups: list[range]) -> 
         lines += [_caption_line(f"scene {s.group}", s.status, s.span, s.removed) for s in scenes]
     elif stage == "p3":
         lines.append(_caption_line("final", t.final_status, t.final_span, t.final_removed))
-    reasoning = next((r.reasoning for r in t.requests if (r.stage, r.group) == (stage, group)), "")
+    record = next((r for r in t.requests if (r.stage, r.group) == (stage, group)), None)
+    if record is not None and record.problem:
+        what = ANSWER_PROBLEMS.get(record.problem, "")
+        lines.append(
+            f"answer problem: {record.problem} ({what}); finish reason {record.finish_reason or 'none'}, "
+            f"response model {record.response_model or 'not given'}"
+        )
+    reasoning = record.reasoning if record is not None else ""
     if reasoning:
         lines.append(f"reasoning ({len(reasoning)} characters, no part of any caption): {reasoning}")
     return tuple(line for line in lines if line is not None)

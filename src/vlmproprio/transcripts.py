@@ -6,9 +6,11 @@ re-scored later without the model.
 
 A caption that was not given in the exact requested form carries its audit: ``span``, the raw text of the
 answer it came from, and ``removed``, the recovery classes (``parsing.RECOVERY_CLASSES``) that got from that
-span to the caption; a request whose answer held a reasoning block keeps that text as ``reasoning``, apart
-from every caption. These fields are written only when they are not empty, so the transcript of a clean
-answer is the same file it always was.
+span to the caption; a request whose answer held a reasoning block, or whose server returned reasoning beside
+the answer, keeps that text as ``reasoning``, apart from every caption. A request also keeps the server's
+``finish_reason`` and ``response_model`` where the backend reports them, and ``problem``, the class of an answer
+that holds no caption (``chat.ANSWER_PROBLEMS``). These fields are written only when they are not empty, so the
+transcript of a clean answer from a backend that reports neither is the same file it always was.
 """
 
 from __future__ import annotations
@@ -61,7 +63,13 @@ class RequestRecord:
     key: str
     from_cache: bool
     latency_s: float
-    reasoning: str = ""  # the answer's reasoning block(s): never part of a caption
+    reasoning: str = ""  # the server's reasoning field, then the answer's reasoning block(s): never a caption
+    finish_reason: str = ""  # why the server stopped ("stop", "length", ...), where the backend reports it
+    response_model: str = ""  # the model the server says answered, where the backend reports it
+    problem: str = ""  # why the answer holds no caption or may be another model's (chat.ANSWER_PROBLEMS)
+
+
+_REQUEST_OPTIONAL = ("reasoning", "finish_reason", "response_model", "problem")
 
 
 @dataclass
@@ -108,7 +116,7 @@ class Transcript:
             **{f"final_{k}": v for k, v in _audit_fields(self.final_span, self.final_removed).items()},
             "requests": [
                 {"stage": r.stage, "group": r.group, "key": r.key, "from_cache": r.from_cache, "latency_s": r.latency_s}
-                | ({"reasoning": r.reasoning} if r.reasoning else {})
+                | {name: getattr(r, name) for name in _REQUEST_OPTIONAL if getattr(r, name)}
                 for r in self.requests
             ],
             "timing": dict(self.timing),
@@ -140,6 +148,25 @@ def _audit_fields(span: str, removed: Sequence[str]) -> dict:
 
 def _read_audit(d: dict) -> dict:
     return {**d, "removed": tuple(d["removed"])} if "removed" in d else d
+
+
+def answer_problems(transcripts: Sequence[Transcript]) -> dict[str, int]:
+    """Requests per answer problem class over ``transcripts``, most frequent first."""
+    counts: dict[str, int] = {}
+    for t in transcripts:
+        for r in t.requests:
+            if r.problem:
+                counts[r.problem] = counts.get(r.problem, 0) + 1
+    return dict(sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])))
+
+
+def frames_missing_by_problem(t: Transcript) -> int:
+    """Frame captions of ``t`` that are missing and whose Process 1 answer had a problem (RequestRecord.problem)."""
+    flagged = {r.group for r in t.requests if r.stage == "p1" and r.problem}
+    if not flagged:
+        return 0
+    members = {i for s in t.scenes if s.group in flagged for i in s.frame_indices}
+    return sum(1 for f in t.frames if f.status == "missing" and f.frame_index in members)
 
 
 def cell_key(model: str, episode_id: str, condition: str) -> str:

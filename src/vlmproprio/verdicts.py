@@ -64,6 +64,9 @@ _NUMBER_RE = re.compile(r"[+-]?\d+(?:[.,]\d+)*%?")
 # present frame captions found by position rather than read from a label (parsing.HEAVY_CLASSES), at least
 # this share: the captions may sit on the wrong frames, so the segmentation reads the parser's guess
 MIN_HEAVY_RECOVERY_SHARE = 0.20
+# frame captions missing because the server's answers held none (refusals, tool calls, filters, ...), at least
+# this share of all frame captions: most of the model's captions were never written
+MIN_NO_ANSWER_SHARE = 0.50
 GROUP_EDGE_RATIO = 1.5  # points on group edges / expected under uniform placement, at least this ...
 GROUP_EDGE_P = 0.001  # ... and a one-sided binomial p-value below this
 WORD_RE = re.compile(r"^(?:[A-Za-z]+(?:['-][A-Za-z]+)*|[+-]?\d+(?:[.,]\d+)*%?)$")
@@ -249,6 +252,9 @@ class ModelOutputs:
     cell_distinct: list[float] = field(default_factory=list)  # per cell: distinct present frame captions / frames
     frames_missing: int = 0
     frames_heavy: int = 0  # present frame captions that needed a heavy recovery
+    # missing frame captions whose Process 1 answer came back without a plain answer (chat.ANSWER_PROBLEMS)
+    frames_missing_problem: int = 0
+    answer_problems: list[str] = field(default_factory=list)  # the class of each request that had one
     all_captions: list[str] = field(default_factory=list)  # frame, scene and final captions
     final_hits: list[int] = field(default_factory=list)  # lexicon hits of each final caption
     # per cell: (number of frames, segmentation points at the reported threshold)
@@ -354,6 +360,7 @@ def sanity_warnings(outputs: Mapping[str, ModelOutputs], group_size: int) -> lis
                     "value": missing,
                 }
             )
+        out += _no_answer_warning(model, o, n_frames + o.frames_missing)
         heavy = o.frames_heavy / n_frames if n_frames else 0.0
         if heavy >= MIN_HEAVY_RECOVERY_SHARE:
             out.append(
@@ -404,6 +411,26 @@ def sanity_warnings(outputs: Mapping[str, ModelOutputs], group_size: int) -> lis
                 }
             )
     return out
+
+
+def _no_answer_warning(model: str, o: ModelOutputs, n_frames: int) -> list[dict]:
+    """'no-answers': most frame captions are missing because the answers held none, with the classes counted."""
+    share = o.frames_missing_problem / n_frames if n_frames else 0.0
+    if share < MIN_NO_ANSWER_SHARE:
+        return []
+    counts = Counter(o.answer_problems)
+    classes = ", ".join(f"{name} {n}" for name, n in counts.most_common())
+    return [
+        {
+            "model": model,
+            "kind": "no-answers",
+            "message": f"{o.frames_missing_problem} of {n_frames} frame captions are missing because the server's "
+            f"answers held none ({100 * share:.0f}% >= {100 * MIN_NO_ANSWER_SHARE:g}%; requests: {classes}): "
+            "the model's conditions cannot be compared",
+            "value": share,
+            "answer_problems": dict(counts.most_common()),
+        }
+    ]
 
 
 def format_verdict(v: Mapping) -> str:

@@ -1,5 +1,7 @@
 """No word of a reasoning block reaches a score: the same answers with and without a <think> block full of
-rubric words give the same captions, word counts, rubric verdicts, traces and statistics."""
+rubric words give the same captions, word counts, rubric verdicts, traces and statistics; and so do the same
+answers with that text in the server's reasoning field (``Answer.reasoning``: vLLM's and SGLang's
+``reasoning`` / ``reasoning_content``) instead."""
 
 from __future__ import annotations
 
@@ -26,12 +28,15 @@ DRAFT = (
     "and places it in the third bin, moving right and down. Open the door, pull the handle.</think>\n"
 )
 
+# the same draft as a server's reasoning field carries it: no markers, and frame lines the parser would read
+FIELD_DRAFT = DRAFT.strip().removeprefix("<think>").removesuffix("</think>").strip()
+
 
 class Answers:
     """The answers of a plain captioner, optionally each behind a reasoning block."""
 
-    def __init__(self, think: bool):
-        self.think = think
+    def __init__(self, think: bool, field: bool = False):
+        self.think, self.field = think, field
 
     def __call__(self, requests: Sequence[ChatRequest]) -> list[Answer]:
         out = []
@@ -47,15 +52,18 @@ class Answers:
             else:
                 ans = "Move the arm."
             ans = DRAFT + ans if self.think else ans
-            out.append(Answer(ans, AnswerMeta(backend="scripted", model_id="scripted"), key=f"k{len(out)}"))
+            reasoning = FIELD_DRAFT if self.field else ""
+            meta = AnswerMeta(backend="scripted", model_id="scripted")
+            out.append(Answer(ans, meta, key=f"k{len(out)}", reasoning=reasoning))
         return out
 
 
-def _scored(base: Path, think: bool) -> Path:
-    run = base / ("think" if think else "plain")
+def _scored(base: Path, think: bool, field: bool = False) -> Path:
+    run = base / ("field" if field else "think" if think else "plain")
     episodes = load_episodes(FIXTURES, list(EPISODES))
     conditions = [get_condition(c) for c in CONDITIONS]
-    write_transcripts(run, caption_episodes(episodes, conditions, Answers(think), "scripted", progress=False))
+    answers = Answers(think, field)
+    write_transcripts(run, caption_episodes(episodes, conditions, answers, "scripted", progress=False))
     entry = {"name": "scripted", "slug": "scripted", "pipeline": {"prompt_version": "test"}}
     manifest = {"fixtures": str(FIXTURES), "models": [entry], "conditions": list(CONDITIONS), "episodes": EPISODES}
     (run / "run.json").write_text(json.dumps(manifest, indent=1) + "\n")
@@ -68,6 +76,11 @@ def _scored(base: Path, think: bool) -> Path:
 def runs(tmp_path_factory) -> tuple[Path, Path]:
     base = tmp_path_factory.mktemp("reasoning")
     return _scored(base, False), _scored(base, True)
+
+
+@pytest.fixture(scope="module")
+def field_run(runs, tmp_path_factory) -> Path:
+    return _scored(tmp_path_factory.mktemp("reasoning-field"), False, field=True)
 
 
 def _scores(d):
@@ -108,3 +121,21 @@ def test_the_reasoning_is_kept_apart_and_counted(runs) -> None:
     plain_parsing = json.loads((plain / "scores" / "meta.json").read_text())["parsing"]["models"]["scripted"]
     assert plain_parsing["answers_with_reasoning"] == plain_parsing["reasoning_chars"] == 0
     assert plain_parsing["recoveries"] == {}
+
+
+@pytest.mark.parametrize("name", ["rows", "aggregate", "sweep", "paired", "audit", "traces"])
+def test_the_servers_reasoning_field_changes_no_score(runs, field_run, name: str) -> None:
+    plain, _ = runs
+    a = json.loads((plain / "scores" / f"{name}.json").read_text())
+    b = json.loads((field_run / "scores" / f"{name}.json").read_text())
+    assert a == b  # not even a status moves: the field never was part of the answer text
+
+
+def test_the_servers_reasoning_is_kept_apart_and_counted(field_run) -> None:
+    t = json.loads(next((field_run / "transcripts" / "scripted").glob("*.json")).read_text())
+    assert all(r["reasoning"] == FIELD_DRAFT for r in t["requests"])
+    assert all("handle" not in f["text"] and "removed" not in f for f in t["frames"])
+    parsing = json.loads((field_run / "scores" / "meta.json").read_text())["parsing"]["models"]["scripted"]
+    assert parsing["answers_with_reasoning"] == parsing["answers"] > 0
+    assert parsing["reasoning_chars"] == parsing["answers"] * len(FIELD_DRAFT)
+    assert parsing["recoveries"] == {} and parsing["answer_problems"] == {}

@@ -12,6 +12,11 @@ the batch stops at once (queued requests are cancelled, so a dead server fails
 in seconds, not once per request) and a BackendError says what happened, with
 the answers already received attached (``BackendError.partial``) for the cache.
 
+Answers. The answer is the first choice's ``content``; the reasoning a server returns beside it (``reasoning``,
+``reasoning_content``) is ``Answer.reasoning``, never part of the text. An answer that holds no caption, or that
+the response says another model gave, is classed (``chat.ANSWER_PROBLEMS``, in ``AnswerMeta.extra``) from the
+response's own fields: refusal, finish reason, tool calls, model.
+
 Secrets. The API key is read from the environment only (``OPENAI_API_KEY`` or
 the variable named by ``api_key_env``) and handed to the SDK client; it is
 never stored in the identity, metadata, cache, cassettes, logs or messages.
@@ -63,15 +68,88 @@ def _count(value: object) -> int:
     return value if isinstance(value, int) and not isinstance(value, bool) and value >= 0 else 0
 
 
-def _completion_text(resp) -> str:
+@dataclass(frozen=True)
+class _Reply:
+    """What a chat completion's first choice says: the answer, the server's reasoning beside it, and the
+    response's own account of it (finish reason, model, refusal, tool calls) for the answer's metadata."""
+
+    text: str
+    reasoning: str
+    extra: dict
+
+
+# vLLM named the field reasoning_content (as DeepSeek did), then reasoning (OpenAI's guidance for gpt-oss,
+# OpenRouter's name; vLLM PR #27752), sending both for a while; SGLang sends reasoning_content.
+_REASONING_FIELDS = ("reasoning", "reasoning_content")
+
+
+def _reasoning(message: object) -> str:
+    found: list[str] = []
+    for name in _REASONING_FIELDS:
+        value = _server_text(getattr(message, name, None)).strip()
+        if value and value not in found:
+            found.append(value)
+    return "\n\n".join(found)
+
+
+def _tool_names(message: object) -> list[str]:
+    calls = getattr(message, "tool_calls", None)
+    calls = calls if isinstance(calls, list) else []
+    legacy = getattr(message, "function_call", None)
+    names = [_server_text(getattr(getattr(c, "function", None), "name", None)) or "?" for c in calls]
+    if legacy is not None:
+        names.append(_server_text(getattr(legacy, "name", None)) or "?")
+    return names
+
+
+def _completion(resp) -> _Reply:
     """The answer of a chat completion; MalformedCompletion when the body is not one (the SDK does not check)."""
     choices = getattr(resp, "choices", None)
     if not isinstance(choices, list) or not choices:
         raise MalformedCompletion("no choices in the response")
-    content = getattr(getattr(choices[0], "message", None), "content", None)
+    choice = choices[0]
+    message = getattr(choice, "message", None)
+    content = getattr(message, "content", None)
     if content is not None and not isinstance(content, str):
         raise MalformedCompletion(f"message content is a JSON {type(content).__name__}, not text")
-    return _server_text(content)
+    extra: dict = {
+        "response_model": _server_text(getattr(resp, "model", "")),
+        "system_fingerprint": _server_text(getattr(resp, "system_fingerprint", "")),
+        "finish_reason": _server_text(getattr(choice, "finish_reason", "")),
+    }
+    refusal = _server_text(getattr(message, "refusal", None)).strip()
+    tools = _tool_names(message)
+    if refusal:
+        extra["refusal"] = refusal
+    if tools:
+        extra["tool_calls"] = tools
+    return _Reply(_server_text(content).strip(), _reasoning(message), extra)
+
+
+def _model_name(name: str) -> str:
+    """A model name without its date or snapshot numbers: OpenAI answers "gpt-4o" as "gpt-4o-2024-08-06" and
+    "gpt-4-vision-preview" as "gpt-4-1106-vision-preview", which are the model asked for."""
+    return "-".join(p for p in name.lower().split("-") if not (p.isdigit() and len(p) >= 2))
+
+
+def answer_problem_of(reply: _Reply, asked: str) -> str:
+    """The chat.ANSWER_PROBLEMS class of a reply ("" when it is a plain answer), the first that applies."""
+    extra = reply.extra
+    finish = extra["finish_reason"]
+    if extra.get("refusal"):
+        return "refusal"
+    if finish == "content_filter":
+        return "content_filter"
+    if extra.get("tool_calls") or finish in ("tool_calls", "function_call"):
+        return "tool_calls"
+    if finish == "length":
+        return "length"
+    if not reply.text:
+        return "reasoning_only" if reply.reasoning else "empty"
+    got = extra["response_model"]
+    if got and _model_name(got) != _model_name(asked):
+        return "other_model"
+    return ""
 
 
 def _check_key(key: str, env: str) -> None:
@@ -205,7 +283,7 @@ class OpenAIBackend(Backend):
             t0 = time.perf_counter()
             try:
                 resp = self.client.chat.completions.create(**body)
-                text = _completion_text(resp)
+                reply = _completion(resp)
             except (json.JSONDecodeError, openai.APIResponseValidationError, MalformedCompletion) as exc:
                 # a 200 whose body is not a chat completion: the SDK does not retry these
                 if attempt == attempts:
@@ -243,20 +321,19 @@ class OpenAIBackend(Backend):
                 ) from None
             latency = time.perf_counter() - t0
             usage = resp.usage
+            extra = {**reply.extra, "malformed_retries": attempt - 1}
+            problem = answer_problem_of(reply, self.model)
+            if problem:  # only then: a plain answer's metadata stays what it always was
+                extra["answer_problem"] = problem
             meta = AnswerMeta(
                 **self.identity(),
                 device="remote",
                 prompt_tokens=_count(getattr(usage, "prompt_tokens", 0)),
                 completion_tokens=_count(getattr(usage, "completion_tokens", 0)),
                 latency_s=latency,
-                extra={
-                    "response_model": _server_text(getattr(resp, "model", "")),
-                    "system_fingerprint": _server_text(getattr(resp, "system_fingerprint", "")),
-                    "finish_reason": _server_text(getattr(resp.choices[0], "finish_reason", "")),
-                    "malformed_retries": attempt - 1,
-                },
+                extra=extra,
             )
-            return Answer(text=text.strip(), meta=meta)
+            return Answer(text=reply.text, meta=meta, reasoning=reply.reasoning)
         raise AssertionError("unreachable")  # pragma: no cover
 
     def _body(self, request: ChatRequest) -> dict:

@@ -30,7 +30,9 @@ def cmd_cassette(args: argparse.Namespace) -> int:
         if model is not None:
             cassette_dir = args.cassette_dir or (args.out.parent if args.out else fixtures_of(args) / "responses")
             path = args.out or model.cassette(cassette_dir)
-            path, n = export_cassette(cache, model.slug, path, merge=not args.replace)
+            path, n = export_cassette(
+                cache, model.slug, path, merge=not args.replace, allow_empty=args.allow_empty_answers
+            )
             manifest = register_fixture_file(path)
             print(f"wrote {n} answers of {args.model} to {path}" + (f" (updated {manifest})" if manifest else ""))
             if not args.no_embed:
@@ -103,6 +105,11 @@ def add_cassette(sub) -> None:
     pe.add_argument("--cassette-dir", type=Path, default=None, help="default: <fixtures>/responses")
     pe.add_argument("--out", type=Path, help="cassette file (default: <cassette-dir>/<model slug>.jsonl)")
     pe.add_argument("--replace", action="store_true", help="start the cassette anew instead of merging")
+    pe.add_argument(
+        "--allow-empty-answers",
+        action="store_true",
+        help="export answers that hold no caption or came from another model too (refused by default)",
+    )
     pe.add_argument(
         "--no-embed", action="store_true", help="do not (re)build the embeddings sidecar beside the cassette"
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -52,7 +53,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from vlmproprio.parallel import parse_workers
     from vlmproprio.pipeline import PipelineSettings
     from vlmproprio.prompts import PromptOptions
-    from vlmproprio.runner import RunPlan, run
+    from vlmproprio.runner import RunPlan, answer_problem_warning, run
 
     _check_run_ranges(args)
     fixtures = fixtures_of(args)
@@ -78,6 +79,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         backend=backend_settings(args, home=cache_root),
         progress=not args.no_progress,
         workers=None if args.workers is None else parse_workers(args.workers, "--workers"),
+        allow_empty_answers=args.allow_empty_answers,
     )
     if args.limit is not None:
         plan = replace(plan, episode_ids=_first_episodes(plan, args.limit))
@@ -92,6 +94,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         embed_recorded_sidecars(runs, plan.out, plan.fixtures)
     for r in runs:
         print(f"{r.name}: {len(r.transcripts)} transcripts in {plan.out} ({r.mode}); {answer_summary(r)}")
+        warning = answer_problem_warning(r)
+        if warning:
+            print(f"warning: {warning}", file=sys.stderr)
     if args.report:
         return score_and_report(plan.out, fixtures, cache_root, progress=not args.no_progress)
     return 0
@@ -145,6 +150,12 @@ def add_run(sub) -> None:
     )
     p.add_argument(
         "--limit", type=int, metavar="N", help="only the first N episodes (of --episodes, or of all): a quick try"
+    )
+    p.add_argument(
+        "--allow-empty-answers",
+        action="store_true",
+        help="record: write answers that hold no caption (empty, refused, filtered, tool calls) or came from "
+        "another model into the cassette too (refused by default)",
     )
     add_workers(
         p, "captioning with a model that is not called (the rule-based captioners, a cassette's replay)", "transcripts"

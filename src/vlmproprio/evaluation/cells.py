@@ -29,7 +29,7 @@ from vlmproprio.scoring import (
     score_text,
 )
 from vlmproprio.segmentation import CosineCache, SweepPoint, boundaries_at, cosine_trace, sweep
-from vlmproprio.transcripts import Transcript, cell_key
+from vlmproprio.transcripts import Transcript, cell_key, frames_missing_by_problem
 from vlmproprio.verdicts import ModelOutputs
 
 
@@ -209,6 +209,8 @@ def _add_outputs(
         and statuses[f.frame_index] != "missing"
         and HEAVY_CLASSES.intersection(f.removed)
     )
+    o.answer_problems += [r.problem for r in t.requests if r.problem]
+    o.frames_missing_problem += frames_missing_by_problem(t)
     present = [x for x, st in zip(texts, statuses, strict=True) if st != "missing"]
     o.frame_captions.extend(present)
     o.cell_distinct.append(len(set(present)) / len(ep.frames))

@@ -15,7 +15,7 @@ from vlmproprio.parsing import HEAVY_CLASSES, RECOVERY_CLASSES
 from vlmproprio.scoring import Lexicon
 from vlmproprio.segmentation import CHANCE_DRAWS, CHANCE_METRICS, CHANCE_SEED, IOU_THRESHOLDS, TOLERANCES
 from vlmproprio.stats import DEFAULT_MAX_EXACT
-from vlmproprio.transcripts import Transcript
+from vlmproprio.transcripts import Transcript, answer_problems
 
 MISSING_POLICY = (
     "A frame caption with status 'missing', an empty text, or no entry in the transcript is a gap: the trace "
@@ -75,7 +75,8 @@ CAPTION_KINDS = ("frames", "scenes", "final")
 
 
 def _model_parsing(transcripts: list[Transcript]) -> dict:
-    """One model's parse audit: its answers and their reasoning, its frame captions by status (``heavy``: found
+    """One model's parse audit: its answers, their reasoning (the server's field and the text's blocks) and the
+    answers that came back without a plain answer, by class (chat.ANSWER_PROBLEMS), its frame captions by status (``heavy``: found
     by position, not read from a label), and per recovery class the present captions of each kind it took."""
     captions: dict[str, list[tuple[str, tuple[str, ...]]]] = {kind: [] for kind in CAPTION_KINDS}
     requests = [r for t in transcripts for r in t.requests]
@@ -93,6 +94,7 @@ def _model_parsing(transcripts: list[Transcript]) -> dict:
         "answers": len(requests),
         "answers_with_reasoning": sum(1 for r in requests if r.reasoning),
         "reasoning_chars": sum(len(r.reasoning) for r in requests),
+        "answer_problems": answer_problems(transcripts),
         "frames": {
             "captions": len(frames),
             "recovered": sum(1 for status, _ in frames if status == "recovered"),

@@ -16,7 +16,19 @@ Faults are injected per request, first in first out::
 Fault kinds: ``429`` (rate limit, with ``Retry-After``), ``500``, ``hang``
 (no answer until the client gives up), ``reset`` (TCP reset before any
 response), ``malformed`` (HTTP 200 whose body is not JSON) and ``empty``
-(a valid completion with empty content). Every request the server saw, with
+(a valid completion with empty content). Valid completions that hold no
+caption, as real servers send them: ``refusal`` (``message.refusal``, no
+content), ``tool_calls`` (a tool call, ``finish_reason`` tool_calls),
+``content_filter``, ``length`` (``finish_reason`` length with the answer
+cut to nothing, the reasoning model's fate at a small token limit),
+``empty_choice`` (a first choice without a message), ``reasoning_only``
+(the answer in the reasoning field, content null) and ``other_model`` (the
+answer, from a model with another name).
+
+Reasoning: ``reasoning=`` a function of the request body returns the text a
+reasoning server (vLLM, SGLang with a reasoning parser) puts beside the
+answer, in ``reasoning_field`` (``reasoning_content``, vLLM's newer
+``reasoning``, or ``both``, as vLLM sent during its rename). Every request the server saw, with
 its headers and body, is kept in :attr:`FakeOpenAIServer.requests`; nothing is
 logged or written to disk.
 """
@@ -35,8 +47,33 @@ from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Literal
 
-FaultKind = Literal["429", "500", "hang", "reset", "malformed", "empty"]
-FAULT_KINDS: tuple[str, ...] = ("429", "500", "hang", "reset", "malformed", "empty")
+FaultKind = Literal[
+    "429",
+    "500",
+    "hang",
+    "reset",
+    "malformed",
+    "empty",
+    "refusal",
+    "tool_calls",
+    "content_filter",
+    "length",
+    "empty_choice",
+    "reasoning_only",
+    "other_model",
+]
+# completions without a caption in them: valid JSON the SDK accepts, each as the servers that send it shape it
+NO_CAPTION_KINDS: tuple[str, ...] = (
+    "refusal",
+    "tool_calls",
+    "content_filter",
+    "length",
+    "empty_choice",
+    "reasoning_only",
+    "other_model",
+)
+FAULT_KINDS: tuple[str, ...] = ("429", "500", "hang", "reset", "malformed", "empty", *NO_CAPTION_KINDS)
+OTHER_MODEL = "some-other-model"
 
 
 @dataclass(frozen=True)
@@ -86,12 +123,18 @@ class FakeOpenAIServer:
         latency_s: float = 0.0,
         hang_s: float = 30.0,
         responder: Responder | None = None,
+        reasoning: Responder | None = None,
+        reasoning_field: str = "reasoning_content",
         host: str = "127.0.0.1",
         port: int = 0,
     ) -> None:
+        if reasoning_field not in ("reasoning_content", "reasoning", "both"):
+            raise ValueError(f"reasoning_field must be reasoning_content, reasoning or both, not {reasoning_field!r}")
         self.latency_s = latency_s
         self.hang_s = hang_s
         self.responder: Responder = responder or expected_answer
+        self.reasoning = reasoning
+        self.reasoning_field = reasoning_field
         self._faults: deque[Fault] = deque()
         self._requests: list[RecordedRequest] = []
         self._lock = threading.Lock()
@@ -298,9 +341,21 @@ class _Handler(BaseHTTPRequestHandler):
         if self.fake.latency_s > 0 and self.fake._closing.wait(self.fake.latency_s):
             return
         if fault is None:
-            self._send_json(200, _completion(body, self.fake.responder(body)))
+            self._send_json(200, self._with_reasoning(body, _completion(body, self.fake.responder(body))))
+        elif fault.kind in NO_CAPTION_KINDS:
+            doc = _completion(body, self.fake.responder(body))
+            self._send_json(200, _no_caption(fault.kind, self._with_reasoning(body, doc)))
         else:
             self._serve_fault(fault, body)
+
+    def _with_reasoning(self, body: dict, doc: dict) -> dict:
+        if self.fake.reasoning is not None and isinstance(doc.get("choices"), list) and doc["choices"]:
+            field = self.fake.reasoning_field
+            names = ("reasoning_content", "reasoning") if field == "both" else (field,)
+            text = self.fake.reasoning(body)
+            for name in names:
+                doc["choices"][0]["message"][name] = text
+        return doc
 
     def _serve_fault(self, fault: Fault, body: dict) -> None:
         if fault.kind in _ERRORS:
@@ -315,6 +370,31 @@ class _Handler(BaseHTTPRequestHandler):
         elif fault.kind == "hang":
             self.fake._closing.wait(self.fake.hang_s)
             self.close_connection = True
+
+
+def _no_caption(kind: str, doc: dict) -> dict:
+    """``doc`` (a normal completion) turned into one of NO_CAPTION_KINDS."""
+    choice = doc["choices"][0]
+    message = choice["message"]
+    if kind == "refusal":
+        message.update(content=None, refusal="I'm sorry, I can't help with that.")
+    elif kind == "tool_calls":
+        call = {"id": "call_0", "type": "function", "function": {"name": "describe_frames", "arguments": "{}"}}
+        message.update(content=None, tool_calls=[call])
+        choice["finish_reason"] = "tool_calls"
+    elif kind == "content_filter":
+        message["content"] = None
+        choice["finish_reason"] = "content_filter"
+    elif kind == "length":
+        message["content"] = ""
+        choice["finish_reason"] = "length"
+    elif kind == "empty_choice":
+        doc["choices"] = [{"index": 0, "finish_reason": None}]
+    elif kind == "reasoning_only":
+        message["reasoning_content"], message["content"] = message["content"], None
+    elif kind == "other_model":
+        doc["model"] = OTHER_MODEL
+    return doc
 
 
 def _make_handler(server: FakeOpenAIServer) -> type[BaseHTTPRequestHandler]:
