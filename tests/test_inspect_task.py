@@ -168,7 +168,9 @@ def test_mock_model_scores_equal_the_suites_for_the_same_answers(ia, tmp_path):
     task = ia.task.proprio_captions(condition=CONDITIONS, episodes=",".join(EPISODES), fixtures=str(FIXTURES))
     log = _eval(ia, task, model, tmp_path)
     assert log.results.total_samples == len(EPISODES) * 3
-    assert any(v.metrics["grouped_mean[both]"].value > 0 for v in log.results.scores if v.name in ia.task.RUBRIC_METRICS)
+    assert any(
+        v.metrics["grouped_mean[both]"].value > 0 for v in log.results.scores if v.name in ia.task.RUBRIC_METRICS
+    )
 
     # the same answers through vlmproprio's own pipeline: every request it builds must be one the task sent
     peers = load_episodes(FIXTURES)
