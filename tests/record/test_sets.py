@@ -155,3 +155,29 @@ def test_a_failing_seed_is_skipped_with_its_reason_and_the_count_holds(tmp_path:
         {"seed": 3, "reason": "seed 3: the operator did not complete the task (dropped it)"}
     ]
     assert "stack-s3-000: skipped seed 3" in capsys.readouterr().out
+
+
+@needs_robosuite
+@pytest.mark.record
+@pytest.mark.slow
+def test_a_stack_episode_is_scored_with_directions_from_its_own_trajectory(tmp_path: Path):
+    """A whole Stack episode: the operator succeeds, and the rubric's expected carry directions are the hand's
+    displacement in its transport phase, in the words of the episode's own camera."""
+    from vlmproprio.episodes import load_episode
+    from vlmproprio.record.sets import record_set
+    from vlmproprio.scoring.expectation import expectation_for
+    from vlmproprio.scoring.rubric import score_caption
+
+    record_set("stack", 1, 2, tmp_path, progress=False)
+    ep = load_episode(tmp_path, "stack-s2-000")
+    assert ep.success and ep.env_name == "Stack" and ep.extra["skipped_seeds"] == []
+    lift, carry = expectation_for(ep).motions
+    assert lift.expected == ("up",)
+    a, b = ep.extra["scene"]["object_start"], ep.extra["under_object_pos"]
+    forward = "forward" if b[0] > a[0] else "backward"
+    assert forward in carry.expected or abs(b[0] - a[0]) < 0.35 * abs(b[1] - a[1])
+    words = " and ".join(d.replace("robot_", "to the robot's ") for d in carry.expected[:1])
+    good = score_caption(f"The robot picks up the red cube, moves it {words} and stacks it on the green cube.", ep)
+    assert good.object.correct and good.action.correct and good.trajectory.correct
+    bad = score_caption(f"The robot picks up the red cube, moves it {carry.opposite[0]} and stacks it.", ep)
+    assert bad.trajectory.wrong
