@@ -1,4 +1,4 @@
-"""Record a new episode set (``vlmproprio record --task T --count N --seed S --out DIR``), in parallel and
+"""Record a new episode set (``vlmproprio record --task stack --count 8 --seed 0 --out DIR``), in parallel and
 resumable.
 
 Each slot is recorded in a process of its own (``--workers``), into ``DIR/.partial/<id>.<pid>/`` and renamed
