@@ -6,6 +6,7 @@ import argparse
 from pathlib import Path
 
 from vlmproprio.cli.arguments import add_fixtures, add_list, add_no_progress, command, fixtures_of
+from vlmproprio.errors import UsageError
 from vlmproprio.options import FIXTURES_HELP, split_list
 
 
@@ -27,9 +28,34 @@ def cmd_manifest(args: argparse.Namespace) -> int:
 def cmd_record(args: argparse.Namespace) -> int:
     from vlmproprio.record.recorder import record_all
 
+    if args.task is not None:
+        return _record_new_set(args)
+    if args.out is not None or args.count is not None or args.seed is not None:
+        raise UsageError("record --out, --count and --seed make a new set: give --task too")
     fixtures = fixtures_of(args, must_exist=False)
     sheets = args.contact_sheets or Path("runs") / "contact_sheets"
     record_all(fixtures, episode_ids=split_list(args.episodes) or None, contact_sheets=sheets)
+    return 0
+
+
+def _record_new_set(args: argparse.Namespace) -> int:
+    from vlmproprio.parallel import parse_workers
+    from vlmproprio.record.sets import record_set
+
+    if args.out is None or args.count is None:
+        raise UsageError("record --task needs --count N and --out DIR (and takes --seed S, default 0)")
+    if args.episodes:
+        raise UsageError("record --episodes re-records shipped episodes; it does not go with --task")
+    workers = parse_workers(args.workers, "record --workers") if args.workers is not None else 1
+    record_set(
+        args.task,
+        args.count,
+        args.seed or 0,
+        args.out,
+        workers=workers,
+        max_steps=args.max_steps,
+        progress=not args.no_progress,
+    )
     return 0
 
 
@@ -77,6 +103,19 @@ def add_fixture_commands(sub) -> None:
         default=None,
         help="folder for one contact sheet per episode (default: runs/contact_sheets)",
     )
+    add_new_set_options(p)
+
+
+def add_new_set_options(p) -> None:
+    """record --task T --count N --seed S --out DIR: a new episode set (vlmproprio.record.sets)."""
+    g = p.add_argument_group("a new episode set (instead of re-recording the shipped episodes)")
+    g.add_argument("--task", help="task family of record/catalog.json: door | pick_place | stack")
+    g.add_argument("--count", type=int, help="episodes in the set")
+    g.add_argument("--seed", type=int, help="first robosuite seed of the set (default 0): slot k tries seed S+k first")
+    g.add_argument("--out", type=Path, help="folder to record the set into; a killed recording resumes there")
+    g.add_argument("--workers", metavar="N", help="processes recording episodes in parallel (default 1)")
+    g.add_argument("--max-steps", type=int, help="cut every episode after this many steps, unjudged (tests, timing)")
+    add_no_progress(g)
 
 
 def add_import_demos(sub) -> None:

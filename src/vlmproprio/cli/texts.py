@@ -21,7 +21,9 @@ TEXTS: dict[str, tuple[str, str | None]] = {
     "record": (
         "(re)record the episodes with robosuite (needs the [record] extra)",
         "Re-record episodes with the scripted operators. Bit-identical on this machine kind "
-        "(pinned mujoco, EGL or OSMesa rendering). Writes episodes, the manifest and a contact sheet.",
+        "(pinned mujoco, EGL or OSMesa rendering). Writes episodes, the manifest and a contact sheet. "
+        "With --task T --count N --seed S --out DIR: record a new set of N episodes of varied scenes and "
+        "operators instead, in --workers processes, resumable.",
     ),
     "import-demos": (
         "import robosuite / robomimic demo.hdf5 demonstrations as episodes (needs the [record] extra)",

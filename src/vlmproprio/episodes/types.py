@@ -21,7 +21,8 @@ import numpy as np
 from vlmproprio.errors import VlmproprioError
 
 FORMAT_VERSION = 1
-TASKS = ("door", "pick_place", "lift")
+# every task an episode may name; each has a scoring lexicon (vlmproprio/lexicons/<task>.json)
+TASKS = ("door", "pick_place", "lift", "stack")
 JOINT_DIM = 8
 EE_DIM = 6
 MANIFEST_NAME = "manifest.json"

@@ -269,7 +269,14 @@ def wrist_safe_axis(env, R_now: np.ndarray, daz: float, axis: np.ndarray) -> np.
     return best[1]
 
 
-def pick_place_operator(env, hand: Hand, bin_index: int) -> Iterator[Step]:
+def pick_place_operator(
+    env, hand: Hand, bin_index: int, grasp_above: float = 0.04, measure_rest: bool = False
+) -> Iterator[Step]:
+    """Pick the object from the source bin and set it down in compartment ``bin_index``.
+
+    ``grasp_above``: where the fingers close above the object's centre. ``measure_rest``: lower the object
+    until its centre is where it stood in the source bin (the bins' floors are level), instead of the cereal
+    box's standing height; the shipped episodes were recorded with the cereal box's."""
     import mujoco
 
     m, d = env.sim.model._model, env.sim.data._data
@@ -291,7 +298,8 @@ def pick_place_operator(env, hand: Hand, bin_index: int) -> Iterator[Step]:
     yield from hand.move(phase[0], [opos[0], opos[1], top], Rg, OPEN, tol=0.01)
     yield from hand.pause(phase[0], OPEN)
     opos = d.xpos[body].copy()
-    yield from hand.move(phase[1], [opos[0], opos[1], opos[2] + 0.04], Rg, OPEN, tol=0.006, max_steps=160)
+    rest_z = float(opos[2]) if measure_rest else None
+    yield from hand.move(phase[1], [opos[0], opos[1], opos[2] + grasp_above], Rg, OPEN, tol=0.006, max_steps=160)
     yield from hand.hold(phase[2], CLOSE, 15)
     yield from hand.pause(phase[2], CLOSE)
     p, _ = hand.pose()
@@ -311,12 +319,13 @@ def pick_place_operator(env, hand: Hand, bin_index: int) -> Iterator[Step]:
     # lower until the box stands on the compartment floor (box centre ~0.895 m, half height 0.075), or until
     # the hand stops making progress (at the far compartments the arm can run out of reach a little early)
     p, _ = hand.pose()
-    target = np.array([tx, ty, 0.905 + p[2] - d.xpos[body][2]])
+    down_z, floor_z = (0.905, 0.90) if rest_z is None else (rest_z + 0.01, rest_z + 0.005)
+    target = np.array([tx, ty, down_z + p[2] - d.xpos[body][2]])
     heights: list[float] = []
     for _ in range(200):
         heights.append(float(d.xpos[body][2]))
         stalled = len(heights) > 15 and heights[-16] - heights[-1] < 0.002
-        if hand.error(target, Rg)[0] < 0.01 or heights[-1] < 0.90 or stalled:
+        if hand.error(target, Rg)[0] < 0.01 or heights[-1] < floor_z or stalled:
             break
         yield phase[5], hand.action(target, Rg, CLOSE)
     yield from hand.pause(phase[5], CLOSE)  # settle the box before letting go
@@ -326,3 +335,49 @@ def pick_place_operator(env, hand: Hand, bin_index: int) -> Iterator[Step]:
     # back to where the hand started: seen from above, the arm would otherwise hide the box it just placed
     yield from hand.move(phase[7], [home[0], home[1], top], Rg, OPEN, tol=0.02, rtol=0.2, pace=TRANSIT)
     yield from hand.pause(phase[7], OPEN)
+
+
+# ---------------------------------------------------------------------------------------------- Stack
+
+
+def cube_axis(env, body: int, R_now: np.ndarray) -> np.ndarray:
+    """The red cube's horizontal face normal (x or y of its body frame) nearest the fingers' closing axis."""
+    R = env.sim.data.body_xmat[body].reshape(3, 3)
+    axes = [R[:, 0], R[:, 1]]
+    return max(axes, key=lambda a: abs(float(np.dot(a[:2], R_now[:2, 0]))))
+
+
+def stack_operator(env, hand: Hand, phases: tuple[str, ...], grasp_above: float = 0.0) -> Iterator[Step]:
+    """Pick the red cube (robosuite's cubeA) and set it down on the green one (cubeB)."""
+    d = env.sim.data
+    a_body, b_body = env.cubeA_body_id, env.cubeB_body_id
+    st = hand.style
+    yield from hand.hold(phases[0], OPEN, 5)
+    home, R0 = hand.pose()
+    apos = d.body_xpos[a_body].copy()
+    Rg = down_frame(wrist_safe_axis(env, R0, 0.0, cube_axis(env, a_body, R0)[:2]))
+    top = apos[2] + 0.16 + st.height
+    yield from hand.move(phases[0], [apos[0] + st.lateral, apos[1] - st.lateral, top], Rg, OPEN, tol=0.02, rtol=0.1)
+    yield from hand.move(phases[0], [apos[0], apos[1], top], Rg, OPEN, tol=0.008)
+    yield from hand.pause(phases[0], OPEN)
+    apos = d.body_xpos[a_body].copy()
+    yield from hand.move(phases[1], [apos[0], apos[1], apos[2] + grasp_above], Rg, OPEN, tol=0.005, max_steps=160)
+    yield from hand.hold(phases[2], CLOSE, 15)
+    yield from hand.pause(phases[2], CLOSE)
+    p, _ = hand.pose()
+    yield from hand.move(phases[3], [p[0], p[1], top], Rg, CLOSE, tol=0.015)
+    yield from hand.pause(phases[3], CLOSE)
+    bpos = d.body_xpos[b_body].copy()
+    held = d.body_xpos[a_body] - hand.pose()[0]  # where the cube hangs from the grip site
+    over = np.array([bpos[0] - held[0], bpos[1] - held[1], top])
+    yield from hand.move(phases[4], over, Rg, CLOSE, tol=0.006, max_steps=400)
+    yield from hand.pause(phases[4], CLOSE)
+    # the red cube's centre 0.045 m above the green one's (half sizes 0.02 + 0.025) plus a few mm of air
+    target = np.array([over[0], over[1], bpos[2] + 0.05 - held[2]])
+    yield from hand.move(phases[5], target, Rg, CLOSE, tol=0.004, max_steps=200)
+    yield from hand.pause(phases[5], CLOSE)
+    yield from hand.hold(phases[6], OPEN, 15)
+    p, _ = hand.pose()
+    yield from hand.move(phases[7], [p[0], p[1], top], Rg, OPEN, tol=0.015)
+    yield from hand.move(phases[7], [home[0], home[1], top], Rg, OPEN, tol=0.02, rtol=0.2, pace=TRANSIT)
+    yield from hand.pause(phases[7], OPEN)
