@@ -202,10 +202,10 @@ def test_damaged_episodes_are_one_clear_line(sandbox, case, figures):
 BAD_FLAGS = {
     "unknown condition": (("--conditions", "nope"), "unknown condition 'nope'"),
     "no condition": (("--conditions", ","), "no condition given"),
-    "k of 0": (("--k", "0"), "k must be at least 1"),
-    "negative stride": (("--frame-stride", "-1"), "frame stride must be at least 1"),
+    "k of 0": (("--k", "0"), "--k must be in [1, inf], got 0"),
+    "negative stride": (("--frame-stride", "-1"), "--frame-stride must be in [1, inf], got -1"),
     "zero tokens": (("--max-new-tokens", "0"), "--max-new-tokens must be at least 1"),
-    "negative image cap": (("--max-images-p3", "-1"), "max images for Process 3 must be >= 0"),
+    "negative image cap": (("--max-images-p3", "-1"), "--max-images-p3 must be in [0, inf], got -1"),
     "out is a file": (("--out", "a-file"), "cannot create run directory a-file"),
     "cache is a file": (("--cache-dir", "a-file"), "cannot create cache directory a-file"),
     "no fixtures": (("--fixtures", "nowhere"), "manifest missing"),

@@ -42,7 +42,7 @@ def _check_run_ranges(args: argparse.Namespace) -> None:
         raise UsageError(f"--max-new-tokens must be at least 1, got {args.max_new_tokens}")
     check_range("--k", args.k, 1)
     check_range("--frame-stride", args.frame_stride, 1)
-    check_range("--max-images-p3", args.max_images_p3, 1)
+    check_range("--max-images-p3", args.max_images_p3, 0)
     check_range("--batch-size", args.batch_size, 1)
     check_range("--threads", args.threads, 1)
     check_range("--batch-tokens", args.batch_tokens, 1)
