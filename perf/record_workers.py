@@ -1,7 +1,7 @@
 """Wall time of recording a new episode set with 1 and with 2 worker processes, and their ratio (target >= 1.6x
 on 2 cores).
 
-    python perf/record_workers.py [--task stack] [--count 8] [--seed 0] [--max-steps N]
+    python perf/record_workers.py [--task stack] [--count 8] [--seed 0] [--max-steps N] [--two-first]
 
 Runs `vlmproprio record --task T --count N --seed S --out DIR --workers W` in a fresh process for W = 1 then
 W = 2, each into its own temporary folder, exactly as a user would, and checks that the two sets are
@@ -46,13 +46,15 @@ def main(argv=None) -> int:
     ap.add_argument("--count", type=int, default=8, help="episodes per set (default: 8)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--max-steps", type=int, help="cut episodes after this many steps (default: whole episodes)")
+    ap.add_argument("--two-first", action="store_true", help="run 2 workers before 1 (load drifts on a shared machine)")
     ap.add_argument("--out", type=Path, help="also write the numbers as JSON here")
     args = ap.parse_args(argv)
     rows = []
     with tempfile.TemporaryDirectory(prefix="vlmproprio-record-workers-") as tmp:
-        for workers in (1, 2):
+        for workers in (2, 1) if args.two_first else (1, 2):
             out = Path(tmp) / f"w{workers}"
             rows.append(_record(args.task, args.count, args.seed, workers, args.max_steps, out))
+    rows.sort(key=lambda r: r["workers"])
     same = rows[0].pop("files") == rows[1].pop("files")
     ratio = rows[0]["wall_s"] / rows[1]["wall_s"]
     for r in rows:
