@@ -337,3 +337,22 @@ def fake_spec():
     from vlmproprio.embeddings import EncoderSpec
 
     return EncoderSpec(name="fake-encoder", path="/nonexistent/fake-encoder", revision="test-1")
+
+
+def score_scripted_run(run: Path, fixtures: Path, episodes: Sequence[str], conditions: Sequence[str], answers) -> None:
+    """Caption the real ``episodes`` under ``conditions`` with the answer function ``answers`` (model "scripted"),
+    write the run's transcripts and run.json, and score it with fake embeddings (no encoder)."""
+    from vlmproprio.conditions import get_condition
+    from vlmproprio.episodes import load_episodes
+    from vlmproprio.evaluation import score_run
+    from vlmproprio.pipeline import caption_episodes
+    from vlmproprio.transcripts import write_transcripts
+
+    eps = load_episodes(fixtures, list(episodes))
+    conds = [get_condition(c) for c in conditions]
+    write_transcripts(run, caption_episodes(eps, conds, answers, "scripted", progress=False))
+    entry = {"name": "scripted", "slug": "scripted", "pipeline": {"prompt_version": "test"}}
+    manifest = {"fixtures": str(fixtures), "models": [entry], "conditions": list(conditions), "episodes": episodes}
+    (run / "run.json").write_text(json.dumps(manifest, indent=1) + "\n")
+    prefill_embeddings(run, fake_spec().key)
+    score_run(run, encoder=fake_spec(), progress=False)

@@ -12,13 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from scoring_helpers import fake_spec, prefill_embeddings
+from scoring_helpers import score_scripted_run
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest
-from vlmproprio.conditions import get_condition
-from vlmproprio.episodes import load_episodes
-from vlmproprio.evaluation import score_run
-from vlmproprio.pipeline import caption_episodes
-from vlmproprio.transcripts import write_transcripts
 from vlmproprio.verdicts import MIN_NO_ANSWER_SHARE
 
 FIXTURES = Path(__file__).resolve().parents[2] / "fixtures"
@@ -54,14 +49,7 @@ class Answers:
 
 
 def _score(run: Path, answers: Answers) -> tuple[list[dict], dict]:
-    episodes = load_episodes(FIXTURES, list(EPISODES))
-    conditions = [get_condition(c) for c in CONDITIONS]
-    write_transcripts(run, caption_episodes(episodes, conditions, answers, "scripted", progress=False))
-    entry = {"name": "scripted", "slug": "scripted", "pipeline": {"prompt_version": "test"}}
-    manifest = {"fixtures": str(FIXTURES), "models": [entry], "conditions": list(CONDITIONS), "episodes": EPISODES}
-    (run / "run.json").write_text(json.dumps(manifest, indent=1) + "\n")
-    prefill_embeddings(run, fake_spec().key)
-    score_run(run, encoder=fake_spec(), progress=False)
+    score_scripted_run(run, FIXTURES, EPISODES, CONDITIONS, answers)
     warnings = json.loads((run / "scores" / "verdicts.json").read_text())["warnings"]
     parsing = json.loads((run / "scores" / "meta.json").read_text())["parsing"]["models"]["scripted"]
     return warnings, parsing
