@@ -91,7 +91,7 @@ def _metavar_of(action: argparse.Action) -> str:
         return METAVARS_BY_DEST[action.dest]
     if action.type is int:
         return "N"
-    if action.type is float or getattr(action.type, "__name__", "") in ("finite_float", "unit_interval"):
+    if action.type is float:
         return "X"
     if action.type is Path:
         return "PATH"

@@ -52,6 +52,13 @@ class RunScores:
         tasks = [t for t in TASK_ORDER if t in present] + sorted(present - set(TASK_ORDER))
         return [*tasks, "all"] if with_all and len(tasks) > 1 else tasks
 
+    @property
+    def pooled_task(self) -> str:
+        """The task name of every episode together: "all", or the one task of a run that has only one (the
+        scores write an "all" row only for two tasks or more)."""
+        tasks = self.tasks(with_all=True)
+        return "all" if "all" in tasks or not tasks else tasks[0]
+
     def task_of(self, episode_id: str) -> str | None:
         return next((r["task"] for r in self.rows if r["episode_id"] == episode_id), None)
 

@@ -120,12 +120,6 @@ def _cell(s: RunScores, model: str, metric: str, a: str, b: str, task: str) -> C
     return Cell(None, f"{label(metric)} not scored")
 
 
-def _task_of(s: RunScores, task: str) -> str:
-    """``all`` in a run of one task is that task (a run has an "all" row only with two tasks or more)."""
-    tasks = s.tasks(with_all=True)
-    return tasks[0] if task == "all" and "all" not in tasks and len(tasks) == 1 else task
-
-
 def build_leaderboard(
     run_dirs: Sequence[str | Path],
     metrics: Sequence[str] = LEADERBOARD_METRICS,
@@ -139,7 +133,7 @@ def build_leaderboard(
     runs = [load_run_scores(d) for d in run_dirs]
     names = [m for s in runs for m in s.models]
     for s in runs:
-        t = _task_of(s, task)
+        t = s.pooled_task if task == "all" else task
         for model in s.models:
             name = model if names.count(model) == 1 else f"{model} ({s.run_dir})"
             verdicts = [v for v in s.verdicts.get("verdicts", []) if v.get("model") == model]

@@ -10,11 +10,6 @@ from vlmproprio.report.tables import fmt_value, label
 TERMINAL_METRICS = headline_metrics()
 
 
-def _task(s: RunScores) -> str:
-    tasks = s.tasks(with_all=True)
-    return "all" if "all" in tasks else tasks[0]
-
-
 def _text_table(headers: list[str], rows: list[list[str]]) -> list[str]:
     widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(headers)]
     line = "  ".join(h.ljust(w) if i == 0 else h.rjust(w) for i, (h, w) in enumerate(zip(headers, widths, strict=True)))
@@ -28,7 +23,7 @@ def _text_table(headers: list[str], rows: list[list[str]]) -> list[str]:
 
 def model_summary(s: RunScores, model: str) -> list[str]:
     """``model``'s headline means per condition (episodes: the task 'all', or the run's one task)."""
-    task = _task(s)
+    task = s.pooled_task
     rows = []
     for condition in s.conditions:
         a = s.aggregate_row(model, task, condition)
