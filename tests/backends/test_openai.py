@@ -212,3 +212,48 @@ def test_planted_api_key_never_reaches_any_file(api_key, request_factory, png_fa
     assert leaked == []  # ... and is in no file: cache database, cassette, log
     assert not any(api_key in d for d in decoded)  # nor in the (compressed) cache values
     assert api_key not in str(info.value) and api_key not in repr(backend)
+
+
+@pytest.mark.parametrize(
+    "body",
+    [
+        {"error": {"message": "The prompt has 14489 tokens, but the model takes at most 4096", "code": 400}},
+        {"detail": "The prompt has 14489 tokens, but the model takes at most 4096"},  # FastAPI (transformers serve)
+        {
+            "detail": [
+                {"loc": ["body", "messages"], "msg": "The prompt has 14489 tokens, but the model takes at most 4096"}
+            ]
+        },
+    ],
+    ids=["openai", "fastapi", "fastapi-validation"],
+)
+def test_a_refused_request_shows_the_servers_reason(body, api_key, request_factory, png_factory):
+    import json
+    import threading
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    from vlmproprio.backends.openai import OpenAIBackend
+
+    class Refuses(BaseHTTPRequestHandler):
+        def do_POST(self):
+            self.rfile.read(int(self.headers["Content-Length"]))
+            data = json.dumps(body).encode()
+            self.send_response(400)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(data)))
+            self.end_headers()
+            self.wfile.write(data)
+
+        def log_message(self, *args):
+            pass
+
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), Refuses)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{httpd.server_address[1]}/v1"
+        backend = OpenAIBackend("m", base_url=url, api_key_env=KEY_ENV, max_retries=0, timeout_s=5.0)
+        with pytest.raises(BackendError, match=r"answered HTTP 400: The prompt has 14489 tokens, but the model takes"):
+            backend.generate(requests_for(request_factory, png_factory, 1))
+    finally:
+        httpd.shutdown()
+        httpd.server_close()

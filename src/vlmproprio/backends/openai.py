@@ -368,11 +368,17 @@ def _message(m) -> dict:
 
 
 def _error_detail(exc) -> str:
+    """The server's reason for an error status: OpenAI's ``{"error": {"message"}}``, or FastAPI's ``{"detail"}``
+    (transformers serve, many vLLM front ends), whose detail is a string or a list of validation errors."""
     body = getattr(exc, "body", None)
     if isinstance(body, dict):
         err = body.get("error", body)
-        msg = err.get("message") if isinstance(err, dict) else None
-        if isinstance(msg, str):
+        msg = err.get("message") if isinstance(err, dict) else err if isinstance(err, str) else None
+        if msg is None:
+            msg = body.get("detail")
+            if isinstance(msg, list):
+                msg = "; ".join(str(d.get("msg", d)) if isinstance(d, dict) else str(d) for d in msg)
+        if isinstance(msg, str) and msg.strip():
             return msg[:300]
     return str(getattr(exc, "message", "") or exc)[:300]
 

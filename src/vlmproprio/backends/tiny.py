@@ -33,7 +33,7 @@ from vlmproprio.backends.base import BackendError
 from vlmproprio.episodes import sha256_file
 
 FAMILIES: tuple[str, ...] = ("qwen2-vl", "qwen2.5-vl", "llava")
-BUILD_VERSION = 1
+BUILD_VERSION = 2  # 2: the LLaVA build's context holds Process 3 at the image cap
 STAMP_FILE = "vlmproprio-tiny.json"
 
 # Order fixes the token ids 0..6 (the real Qwen2 tokenizer has them at 151643..151656).
@@ -140,7 +140,7 @@ def build_tokenizer(seed: int = 0, vocab_size: int = 1024):
     return tok
 
 
-def _text_config(vocab_size: int, **extra) -> dict:
+def _text_config(vocab_size: int, context: int = 4096, **extra) -> dict:
     return dict(
         vocab_size=vocab_size,
         hidden_size=64,
@@ -148,7 +148,7 @@ def _text_config(vocab_size: int, **extra) -> dict:
         num_hidden_layers=2,
         num_attention_heads=4,  # head_dim 16 -> rotary half-dim 8
         num_key_value_heads=2,
-        max_position_embeddings=4096,
+        max_position_embeddings=context,
         bos_token_id=0,
         eos_token_id=2,
         pad_token_id=0,
@@ -238,7 +238,9 @@ def _save_llava(out: Path, seed: int) -> None:
             patch_size=14,
             projection_dim=32,
         ),
-        text_config=dict(model_type="qwen2", **_text_config(len(tok))),
+        # 257 tokens a frame: Process 3 with 31 images and the state text is ~14,500 tokens. A server refuses a
+        # prompt longer than the model's context (transformers serve does), so the config must hold it.
+        text_config=dict(model_type="qwen2", **_text_config(len(tok), context=32768)),
         image_token_id=tok.convert_tokens_to_ids(LLAVA_IMAGE_TOKEN),
         vision_feature_select_strategy="default",
         vision_feature_layer=-2,
