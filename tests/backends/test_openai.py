@@ -257,3 +257,47 @@ def test_a_refused_request_shows_the_servers_reason(body, api_key, request_facto
     finally:
         httpd.shutdown()
         httpd.server_close()
+
+
+def test_a_404_from_a_base_url_without_v1_asks_about_the_path(server, api_key, request_factory, png_factory):
+    """vLLM, SGLang and transformers serve answer under /v1: a URL without it gets a 404 for every request."""
+    from vlmproprio.backends.openai import OpenAIBackend
+
+    root = server.base_url.removesuffix("/v1")
+    backend = OpenAIBackend("gpt-4o", base_url=root, api_key_env=KEY_ENV, max_retries=0, timeout_s=5.0)
+    with pytest.raises(BackendError, match=r"HTTP 404.*serve model 'gpt-4o' or does --base-url lack its /v1 path\?"):
+        backend.generate(requests_for(request_factory, png_factory, 1))
+    assert [r.path for r in server.requests] == ["/chat/completions"]  # asked once, at the path without /v1
+
+
+def test_a_404_at_a_v1_url_asks_only_about_the_model(api_key, request_factory, png_factory):
+    import json
+    import threading
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    from vlmproprio.backends.openai import OpenAIBackend
+
+    class NoSuchModel(BaseHTTPRequestHandler):
+        def do_POST(self):
+            self.rfile.read(int(self.headers["Content-Length"]))
+            data = json.dumps({"error": {"message": "The model `m` does not exist.", "code": 404}}).encode()
+            self.send_response(404)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(data)))
+            self.end_headers()
+            self.wfile.write(data)
+
+        def log_message(self, *args):
+            pass
+
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), NoSuchModel)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{httpd.server_address[1]}/v1/"
+        backend = OpenAIBackend("m", base_url=url, api_key_env=KEY_ENV, max_retries=0, timeout_s=5.0)
+        with pytest.raises(BackendError, match=r"HTTP 404: The model `m` does not exist\.; does the server") as info:
+            backend.generate(requests_for(request_factory, png_factory, 1))
+        assert "serve model 'm'? (0 of 1" in str(info.value) and "/v1 path" not in str(info.value)
+    finally:
+        httpd.shutdown()
+        httpd.server_close()

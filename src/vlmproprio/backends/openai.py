@@ -214,6 +214,15 @@ class OpenAIBackend(Backend):
         self._client_lock = threading.Lock()
         self._key_for_client = key or NO_KEY_PLACEHOLDER
 
+    def _not_found_hint(self) -> str:
+        """What a 404 most likely means: a model the server does not serve, or (vLLM, SGLang and transformers
+        serve all answer under /v1) a base URL without its /v1 path."""
+        hint = f"does the server serve model {self.model!r}?"
+        base = self.settings.base_url
+        if base is not None and not base.rstrip("/").endswith("/v1"):
+            hint = hint[:-1] + " or does --base-url lack its /v1 path?"
+        return hint
+
     def __repr__(self) -> str:  # never show the key, even by accident
         return f"OpenAIBackend(model={self.model!r}, base_url={self.settings.base_url!r}, concurrency={self.settings.concurrency})"
 
@@ -310,7 +319,7 @@ class OpenAIBackend(Backend):
                 hint = {
                     401: "check the API key in $" + self.settings.api_key_env,
                     403: "the key may lack access to this model",
-                    404: f"does the server serve model {self.model!r}?",
+                    404: self._not_found_hint(),
                     429: "rate limited even after retries; lower --concurrency or wait",
                 }.get(exc.status_code, "")
                 retried = (

@@ -315,7 +315,7 @@ class _Handler(BaseHTTPRequestHandler):
 
     def do_GET(self) -> None:
         self._record("GET", None)
-        if self.path.rstrip("/").endswith("/models"):
+        if self.path.rstrip("/").endswith("/v1/models"):
             self._send_json(200, _MODELS)
         else:
             self._not_found()
@@ -329,7 +329,7 @@ class _Handler(BaseHTTPRequestHandler):
 
     def _post(self) -> None:
         body = self._read_body()
-        if not self.path.rstrip("/").endswith("/chat/completions"):
+        if not self.path.rstrip("/").endswith("/v1/chat/completions"):  # served under /v1, as vLLM and OpenAI do
             self._record("POST", body)
             self._not_found()
             return
