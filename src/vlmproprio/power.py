@@ -56,7 +56,7 @@ GROUPS: dict[str, int] = {"door": 10, "pick_place": 12, "all": 22}
 TARGET_POWER = 0.8
 # The paper's mean final-instruction length without and with state (GPT-4V, Table II): 25.2 -> 35.45 words.
 PAPER_WORDS = (25.2, 35.45)
-# Per-episode SD of a paired difference, chosen above what the shipped models show (see the README):
+# Per-episode SD of a paired difference, chosen above what the shipped models show (see docs/findings.md):
 # words both - none: 2.7-7.2 (reference), 1.5-6.9 (tiny-qwen2-vl); boundary F1 (+-1 frame): 0.06-0.15.
 DEFAULT_SD_WORDS = 10.0
 DEFAULT_SD_F1 = 0.15
