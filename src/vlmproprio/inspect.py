@@ -418,7 +418,8 @@ def proprio_captions(
         condition: one or more of none, ee, joint, both, both_shuffled, both_noisy, state_only, primitives
             (comma-separated; 'paper', 'controls' and 'all' name groups).
         episodes: comma-separated episode ids (default: every episode of the fixture set).
-        fixtures: a vlmproprio fixture folder (default: ./fixtures).
+        fixtures: a vlmproprio fixture folder (default: $VLMPROPRIO_FIXTURES, else the fixtures/ of the repository
+            the command runs in, as for the CLI).
         k: frames per group (the paper's k).
         frame_stride: use every n-th sampled frame.
         max_images_p3: cap on the images in Process 3 (default: all).
