@@ -287,7 +287,7 @@ def test_debug_shows_the_traceback_of_damaged_fixtures(sandbox):
     ("option", "message"),
     [
         (["--model", "nope"], "unknown model 'nope'"),
-        (["--model", "../x"], "refused"),
+        (["--model", "../vlmproprio-no-such-model"], "refused"),  # a relative path pytest cannot find a conftest in
         (["--mode", "fast"], "invalid choice: 'fast'"),
         (["--conditions", "nope"], "unknown condition 'nope'"),
         (["--episodes", "../door_00"], "unknown episode(s) ../door_00"),
