@@ -7,7 +7,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from vlmproprio.cli.console import ScrubbingStream, scrub_log_records
-from vlmproprio.cli.parser import build_parser
+from vlmproprio.cli.parser import build_parser, refuse_non_finite
 from vlmproprio.errors import VlmproprioError
 
 
@@ -25,6 +25,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     sys.stdout, sys.stderr = ScrubbingStream(out), ScrubbingStream(err)
     scrub_log_records()
     try:
+        _register_url_secrets(args)
+        refuse_non_finite(parser, args)
         return func(args)
     except KeyboardInterrupt:
         print("vlmproprio: interrupted", file=sys.stderr)
@@ -47,3 +49,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         for stream in (sys.stdout, sys.stderr):
             stream.flush()
         sys.stdout, sys.stderr = out, err
+
+
+def _register_url_secrets(args: argparse.Namespace) -> None:
+    """The credentials of every URL on the command line (``--base-url http://user:pw@host/v1?code=...``) are
+    secrets from the start: the HTTP layer sends them (as ``Authorization: Basic``), a server may quote them."""
+    from vlmproprio.secrets import register_secret_url
+
+    for value in vars(args).values():
+        for item in value if isinstance(value, list | tuple) else [value]:
+            if isinstance(item, str) and "://" in item:
+                register_secret_url(item)
