@@ -381,8 +381,16 @@ def _error_detail(exc) -> str:
             if isinstance(msg, list):
                 msg = "; ".join(str(d.get("msg", d)) if isinstance(d, dict) else str(d) for d in msg)
         if isinstance(msg, str) and msg.strip():
-            return msg[:300]
-    return str(getattr(exc, "message", "") or exc)[:300]
+            return _cut(msg)
+    return _cut(str(getattr(exc, "message", "") or exc))
+
+
+def _cut(text: str) -> str:
+    """At most 300 characters, masked first: a credential the server quoted and the cut split in two would be
+    no longer recognised afterwards."""
+    from vlmproprio.secrets import scrub
+
+    return scrub(text)[:300]
 
 
 # ---------------------------------------------------------------------------------------------- the openai kind
