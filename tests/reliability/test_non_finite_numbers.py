@@ -127,3 +127,15 @@ def test_finite_values_still_parse():
     assert (args.k, args.timeout) == (3, 2.5)
     with pytest.raises(SystemExit):
         build_parser().parse_args(["run", "--model", "reference", "--k", "1.5"])  # not a whole number
+
+
+@pytest.mark.parametrize("value", ["nan", "inf", "-inf"])
+def test_score_settings_refuse_non_finite_thresholds(value):
+    """The scoring settings every front door builds (CLI, Python API, inspect and lmms-eval tasks) refuse them."""
+    from vlmproprio.errors import UsageError
+    from vlmproprio.evaluation.definitions import ScoreSettings
+
+    with pytest.raises(UsageError, match="threshold must be a finite number"):
+        ScoreSettings(threshold=float(value))
+    with pytest.raises(UsageError, match="thresholds must be a finite number"):
+        ScoreSettings(thresholds=(0.5, float(value)))
