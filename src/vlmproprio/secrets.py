@@ -41,15 +41,13 @@ _given: set[str] = set()  # credentials registered by value (register_secret, re
 _URL_USERINFO = re.compile(r"(?P<scheme>[A-Za-z][A-Za-z0-9+.-]*://)[^/\s@'\"<>]+@")
 # a query parameter whose name ends in a word that says it carries a secret: token, api_key, access_token,
 # client_secret, code (OAuth), sig / signature (signed URLs: Azure SAS, X-Amz-Signature), credential, ...
-_SECRET_PARAM_WORDS = (
-    r"api[_-]?key|apikey|key|access[_-]?token|auth[_-]?token|token|jwt|otp|secret|password|passwd|pwd|pass|passcode|code|"
-    r"sig|signature|auth|authorization|credentials?|session(?:[_-]?id)?|sid"
+_SECRET_PARAM_NAME = (
+    r"(?:[A-Za-z0-9_.\[\]-]*[_.-])?"  # any words before, ending in a separator: client_, X-Amz-Security-
+    r"(?:api[_-]?key|apikey|key|access[_-]?token|auth[_-]?token|token|jwt|otp|secret|password|passwd|pwd|pass|"
+    r"passcode|code|sig|signature|auth|authorization|credentials?|session(?:[_-]?id)?|sid)"
 )
-_SECRET_PARAM = re.compile(rf"(?:[A-Za-z0-9_.\[\]-]*[_.-])?(?:{_SECRET_PARAM_WORDS})", re.IGNORECASE)
-_QUERY_SECRET = re.compile(
-    rf"(?P<name>[?&;](?:[A-Za-z0-9_.\[\]-]*[_.-])?(?:{_SECRET_PARAM_WORDS})=)[^&#\s'\"<>]+",
-    re.IGNORECASE,
-)
+_SECRET_PARAM = re.compile(_SECRET_PARAM_NAME, re.IGNORECASE)
+_QUERY_SECRET = re.compile(rf"(?P<name>[?&;]{_SECRET_PARAM_NAME}=)[^&#\s'\"<>]+", re.IGNORECASE)
 _URL = re.compile(r"[A-Za-z][A-Za-z0-9+.-]*://[^\s'\"<>]+")
 _AUTH_HEADER = re.compile(
     r"(?P<name>(?:authorization|proxy-authorization|x-api-key|api-key)[\"']?\s*[:=]\s*[\"']?)"
