@@ -224,3 +224,22 @@ def test_no_encoding_of_any_credential_reaches_a_file_or_the_console(echoed, fig
         console_chars_searched=len(console),
         leaks=0,
     )
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["run", "--model", "reference", "--baseurl", "{url}"],  # a mistyped option: argparse prints its value
+        ["run", "--model", "reference", "{url}"],
+        ["run", "--model", "reference", "--mode", "{url}"],  # argparse: "invalid choice: 'http://...'"
+    ],
+)
+def test_usage_errors_mask_the_url_credentials_they_print(argv, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    password, code = _password(), secrets.token_urlsafe(12)
+    url = _url("http://vlm.example/v1", "carol", password) + f"?code={code}"
+    proc = cli_in_process([a.format(url=url) for a in argv])
+    assert proc.returncode == 2 and "error:" in proc.stderr, proc.stderr
+    assert "***" in proc.stderr, proc.stderr  # the value was printed, masked
+    for form in [*_forms("carol", password), code]:
+        assert form not in proc.stderr + proc.stdout, proc.stderr

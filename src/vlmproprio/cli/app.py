@@ -15,8 +15,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     from vlmproprio.io import is_write_failure, write_error
     from vlmproprio.secrets import scrub
 
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    _register_url_secrets(argv)
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = _parse(parser, argv)
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
@@ -25,7 +27,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     sys.stdout, sys.stderr = ScrubbingStream(out), ScrubbingStream(err)
     scrub_log_records()
     try:
-        _register_url_secrets(args)
         refuse_non_finite(parser, args)
         return func(args)
     except KeyboardInterrupt:
@@ -51,12 +52,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stdout, sys.stderr = out, err
 
 
-def _register_url_secrets(args: argparse.Namespace) -> None:
+def _register_url_secrets(argv: Sequence[str]) -> None:
     """The credentials of every URL on the command line (``--base-url http://user:pw@host/v1?code=...``) are
-    secrets from the start: the HTTP layer sends them (as ``Authorization: Basic``), a server may quote them."""
+    secrets from the start: the HTTP layer sends them (as ``Authorization: Basic``), a server may quote them,
+    and argparse may print a mistyped option's value."""
     from vlmproprio.secrets import register_secret_url
 
-    for value in vars(args).values():
-        for item in value if isinstance(value, list | tuple) else [value]:
-            if isinstance(item, str) and "://" in item:
-                register_secret_url(item)
+    for arg in argv:
+        if "://" in arg:
+            register_secret_url(arg)
+
+
+def _parse(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse.Namespace:
+    """``parser.parse_args``, its usage errors masked too ("unrecognized arguments: http://user:pw@...")."""
+    out, err = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = ScrubbingStream(out), ScrubbingStream(err)
+    try:
+        return parser.parse_args(argv)
+    finally:
+        sys.stdout, sys.stderr = out, err
