@@ -3,7 +3,7 @@
 ``scrub(text)`` replaces, with ``***``:
 
 * every credential the suite was given, in every encoding it sends or a server may quote back: the raw value,
-  its URL-quoted form, and for URL credentials the ``user:password`` pair and its base64 (the
+  its URL-quoted, JSON- and HTML-escaped forms, its base64, and for URL credentials the ``user:password`` pair and its base64 (the
   ``Authorization: Basic`` header the HTTP layer builds from them). The credentials given are the value of
   ``OPENAI_API_KEY`` and of the variable named by ``--api-key-env`` (``register_secret_env``), digits-only keys
   included; the password (or a lone user name, a token) and the secret query parameters of every URL the
@@ -23,6 +23,7 @@ checksummed (cassette lines, score files) never changes clean data.
 from __future__ import annotations
 
 import base64
+import html
 import json
 import os
 import re
@@ -145,10 +146,11 @@ def _pieces(value: str) -> set[str]:
 
 
 def _encodings(value: str) -> set[str]:
-    """``value`` as it may travel or be quoted back: raw, URL-quoted and -unquoted, JSON-escaped, and base64 (a
+    """``value`` as it may travel or be quoted back: raw, URL-quoted and -unquoted, JSON- and HTML-escaped, base64 (a
     ``user:password`` pair is the Basic credential), padded or not."""
     forms = _pieces(value) | {unquote(value), quote(value, safe=""), quote_plus(value)}
     forms |= {json.dumps(f)[1:-1] for f in list(forms)}  # as a JSON string holds it ("\\", "\\u00e9")
+    forms |= {html.escape(f) for f in list(forms)}  # as a page holds it ("&amp;")
     for form in list(forms):
         b64 = base64.b64encode(form.encode("utf-8")).decode("ascii")
         forms.update({b64, b64.rstrip("=")})
