@@ -3,12 +3,12 @@
 ``scrub(text)`` replaces, with ``***``:
 
 * every credential the suite was given, in every encoding it sends or a server may quote back: the raw value,
-  its URL-quoted, JSON- and HTML-escaped forms, its base64, and for URL credentials the ``user:password`` pair and its base64 (the
-  ``Authorization: Basic`` header the HTTP layer builds from them). The credentials given are the value of
-  ``OPENAI_API_KEY`` and of the variable named by ``--api-key-env`` (``register_secret_env``), digits-only keys
-  included; the password (or a lone user name, a token) and the secret query parameters of every URL the
-  command line or the environment holds (``register_secret_url``, and ``OPENAI_BASE_URL``, proxies ...); and any
-  value registered with ``register_secret``;
+  its URL-quoted, JSON- and HTML-escaped forms, its base64, and for URL credentials the ``user:password`` pair
+  and its base64 (the ``Authorization: Basic`` header the HTTP layer builds from them). The credentials given
+  are the value of ``OPENAI_API_KEY`` and of the variable named by ``--api-key-env`` (``register_secret_env``),
+  digits-only keys included; the password (or a lone user name, a token) and the secret query parameters of
+  every URL the command line or the environment holds (``register_secret_url``; ``OPENAI_BASE_URL``, proxies
+  ...); and any value registered with ``register_secret``;
 * the value of any other environment variable whose name ends in KEY, TOKEN, SECRET, PASSWORD or PASSWD
   (values of 8 characters or more with a letter, so numbers in score tables are never hit);
 * credentials in URLs by their shape: ``scheme://user:password@host`` and query parameters whose name says

@@ -33,7 +33,9 @@ answer, in ``reasoning_field`` (``reasoning_content``, vLLM's newer
 Credentials: with ``echo_credentials=True`` every answer and every error message quotes what the request
 carried, as a careless proxy or debugging server would: the ``Authorization`` header, its credential, the
 ``user:password`` a Basic one decodes to and the password alone, the request path's query and its values.
-A test of the secret scrubber then finds each encoding the client sent in what comes back. Every request the server saw, with
+A test of the secret scrubber then finds each encoding the client sent in what comes back.
+
+Every request the server saw, with
 its headers and body, is kept in :attr:`FakeOpenAIServer.requests`; nothing is
 logged or written to disk.
 """
