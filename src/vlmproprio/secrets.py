@@ -45,7 +45,7 @@ _URL_USERINFO = re.compile(r"(?P<scheme>[A-Za-z][A-Za-z0-9+.-]*://)[^/\s@'\"<>]+
 _SECRET_PARAM_NAME = (
     r"(?:[A-Za-z0-9_.\[\]-]*[_.-])?"  # any words before, ending in a separator: client_, X-Amz-Security-
     r"(?:api[_-]?key|apikey|key|access[_-]?token|auth[_-]?token|token|jwt|otp|secret|password|passwd|pwd|pass|"
-    r"passcode|code|sig|signature|auth|authorization|credentials?|session(?:[_-]?id)?|sid)"
+    r"passcode|passphrase|code|sig|signature|hmac|auth|authorization|credentials?|ticket|session(?:[_-]?id)?|sid)"
 )
 _SECRET_PARAM = re.compile(_SECRET_PARAM_NAME, re.IGNORECASE)
 _QUERY_SECRET = re.compile(rf"(?P<name>[?&;]{_SECRET_PARAM_NAME}=)[^&#\s'\"<>]+", re.IGNORECASE)
