@@ -50,6 +50,10 @@ SECRET_PARAMS = (
     "password",
     "secret",
     "client_secret",
+    "oauth_signature",
+    "x-functions-key",  # Azure Functions
+    "subscription-key",  # Azure API Management
+    "private_token",  # GitLab
 )
 
 
