@@ -7,6 +7,7 @@ One list syntax everywhere: a list option takes a comma list, may be repeated, o
 
 from __future__ import annotations
 
+import math
 import re
 from collections.abc import Iterable
 
@@ -63,9 +64,11 @@ def split_list(values: str | Iterable[str] | None) -> list[str]:
 
 
 def check_range(name: str, value: float | None, low: float | None = None, high: float | None = None) -> None:
-    """A UsageError naming the option when ``value`` is outside [low, high] (None: unbounded)."""
+    """A UsageError naming the option when ``value`` is not finite or is outside [low, high] (None: unbounded)."""
     if value is None:
         return
+    if not math.isfinite(value):  # NaN passes every comparison below, and inf is no setting
+        raise UsageError(f"{name} must be a finite number, got {value!r} (NaN and infinity are refused)")
     if (low is not None and value < low) or (high is not None and value > high):
         lo = "-inf" if low is None else f"{low:g}"
         hi = "inf" if high is None else f"{high:g}"

@@ -44,7 +44,7 @@ def parse_workers(value: str | int, where: str) -> int:
     """A worker count from a flag or the environment; a one-line error naming ``where`` when it is not one."""
     try:
         n = int(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: int(float("inf")) from a caller
         n = 0
     if n < 1:
         raise UsageError(f"{where} must be a whole number of worker processes, 1 or more (got {value!r})")

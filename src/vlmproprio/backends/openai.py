@@ -198,9 +198,10 @@ class OpenAIBackend(Backend):
         self.backoff_s = backoff_s
         # enough requests per call to keep every worker busy, few enough that a crash loses little
         self.max_batch_size = max_batch_size or max(16, 4 * concurrency)
-        from vlmproprio.secrets import register_secret_env
+        from vlmproprio.secrets import register_secret_env, register_secret_url
 
         register_secret_env(api_key_env)  # its value is masked in everything written or printed
+        register_secret_url(base_url)  # and so are the URL's credentials, sent as Authorization: Basic
         key = os.environ.get(api_key_env)
         if key:
             _check_key(key, api_key_env)
@@ -209,7 +210,6 @@ class OpenAIBackend(Backend):
                 f"no API key: set the environment variable {api_key_env} (the key is read from the environment "
                 "only), or point --base-url at an OpenAI-compatible server that needs none"
             )
-        self._secret = key or ""
         self._client = None
         self._client_lock = threading.Lock()
         self._key_for_client = key or NO_KEY_PLACEHOLDER
@@ -360,7 +360,9 @@ class OpenAIBackend(Backend):
         return body
 
     def _scrub(self, text: str) -> str:
-        return text.replace(self._secret, "***") if self._secret else text
+        from vlmproprio.secrets import scrub
+
+        return scrub(text)  # every encoding of the key and of the URL's credentials, not the raw key only
 
 
 def _message(m) -> dict:
@@ -388,8 +390,16 @@ def _error_detail(exc) -> str:
             if isinstance(msg, list):
                 msg = "; ".join(str(d.get("msg", d)) if isinstance(d, dict) else str(d) for d in msg)
         if isinstance(msg, str) and msg.strip():
-            return msg[:300]
-    return str(getattr(exc, "message", "") or exc)[:300]
+            return _cut(msg)
+    return _cut(str(getattr(exc, "message", "") or exc))
+
+
+def _cut(text: str) -> str:
+    """At most 300 characters, masked first: a credential the server quoted and the cut split in two would be
+    no longer recognised afterwards."""
+    from vlmproprio.secrets import scrub
+
+    return scrub(text)[:300]
 
 
 # ---------------------------------------------------------------------------------------------- the openai kind

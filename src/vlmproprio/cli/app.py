@@ -7,7 +7,7 @@ import sys
 from collections.abc import Callable, Sequence
 
 from vlmproprio.cli.console import ScrubbingStream, scrub_log_records
-from vlmproprio.cli.parser import build_parser
+from vlmproprio.cli.parser import build_parser, refuse_non_finite
 from vlmproprio.errors import VlmproprioError
 
 
@@ -15,8 +15,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     from vlmproprio.io import is_write_failure, write_error
     from vlmproprio.secrets import scrub
 
+    argv = sys.argv[1:] if argv is None else [str(a) for a in argv]
+    _register_url_secrets(argv)
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = _parse(parser, argv)
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
@@ -25,6 +27,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     sys.stdout, sys.stderr = ScrubbingStream(out), ScrubbingStream(err)
     scrub_log_records()
     try:
+        refuse_non_finite(parser, args)
         return func(args)
     except KeyboardInterrupt:
         print("vlmproprio: interrupted", file=sys.stderr)
@@ -46,4 +49,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         for stream in (sys.stdout, sys.stderr):
             stream.flush()
+        sys.stdout, sys.stderr = out, err
+
+
+def _register_url_secrets(argv: Sequence[str]) -> None:
+    """The credentials of every URL on the command line (``--base-url http://user:pw@host/v1?code=...``) are
+    secrets from the start: the HTTP layer sends them (as ``Authorization: Basic``), a server may quote them,
+    and argparse may print a mistyped option's value."""
+    from vlmproprio.secrets import register_secret_url
+
+    for arg in argv:
+        if "://" in arg:
+            register_secret_url(arg)
+
+
+def _parse(parser: argparse.ArgumentParser, argv: Sequence[str]) -> argparse.Namespace:
+    """``parser.parse_args``, its usage errors masked too ("unrecognized arguments: http://user:pw@...")."""
+    out, err = sys.stdout, sys.stderr
+    sys.stdout, sys.stderr = ScrubbingStream(out), ScrubbingStream(err)
+    try:
+        return parser.parse_args(argv)
+    finally:
         sys.stdout, sys.stderr = out, err

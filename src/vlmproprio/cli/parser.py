@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
+import math
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 from vlmproprio.cli.cassette import add_cassette
@@ -15,6 +16,7 @@ from vlmproprio.cli.run import add_run, add_show
 from vlmproprio.cli.score import add_score
 from vlmproprio.cli.texts import MAINTAINER_COMMANDS
 from vlmproprio.conditions import CONTROLS, PAPER_CONDITIONS
+from vlmproprio.errors import UsageError
 
 EPILOG = """\
 typical use:
@@ -65,6 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
     for add in _SUBCOMMANDS:
         add(sub)
     _uniform_metavars(parser)
+    _whole_numbers_take_non_finite(parser)
     return parser
 
 
@@ -106,3 +109,55 @@ def _uniform_metavars(parser: argparse.ArgumentParser) -> None:
                 _uniform_metavars(sub)
         elif action.option_strings and action.nargs != 0 and action.metavar is None and not action.choices:
             action.metavar = _metavar_of(action)
+
+
+def refuse_non_finite(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """A UsageError naming the option when any number given is NaN or infinite. argparse's ``float`` takes "nan",
+    "inf" and "1e999", and every range check after it (``x < 0 or x > 1``) is false for NaN: one check here, for
+    every numeric option of the command that runs (its own, its kinds', any added later), before it starts."""
+    for action, value in _given_values(parser, args):
+        numbers = value if isinstance(value, list | tuple) else [value]
+        for x in numbers:
+            if isinstance(x, float) and not math.isfinite(x):
+                flag = "/".join(action.option_strings) or action.dest
+                raise UsageError(f"{flag} must be a finite number, got {x!r} (NaN and infinity are refused)")
+
+
+def _given_values(
+    parser: argparse.ArgumentParser, args: argparse.Namespace
+) -> Iterator[tuple[argparse.Action, object]]:
+    """(action, parsed value) of ``parser`` and of the sub-command chosen in ``args``, recursively."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            chosen = getattr(args, action.dest, None)
+            if chosen in action.choices:
+                yield from _given_values(action.choices[chosen], args)
+        elif action.dest != argparse.SUPPRESS and hasattr(args, action.dest):
+            yield action, getattr(args, action.dest)
+
+
+def _whole_number(text: str) -> int | float:
+    """argparse's ``int``, except that "nan" and "inf" come through as floats for ``refuse_non_finite`` to
+    refuse in its one line, as it does for float options, instead of argparse's usage and "invalid int value"."""
+    try:
+        return int(text)
+    except ValueError:
+        try:
+            x = float(text)
+        except ValueError:
+            x = 0.0
+        if math.isfinite(x):
+            raise  # "1.5", "abc": argparse's own "invalid int value"
+        return x
+
+
+_whole_number.__name__ = "int"  # argparse names the type in its error: "invalid int value: '1.5'"
+
+
+def _whole_numbers_take_non_finite(parser: argparse.ArgumentParser) -> None:
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _whole_numbers_take_non_finite(sub)
+        elif action.type is int:
+            action.type = _whole_number

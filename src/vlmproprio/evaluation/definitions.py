@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 # the scores' version lives with the stamp that records it; importable from here too, beside the metric lists
 from vlmproprio.evaluation.metrics import caption_metrics, final_totals, paired_metrics
+from vlmproprio.options import check_range
 from vlmproprio.run_folder import SCORES_VERSION as SCORES_VERSION
 from vlmproprio.segmentation import DEFAULT_THRESHOLD, THRESHOLDS
 from vlmproprio.stats import DEFAULT_N_BOOT, DEFAULT_N_PERM, DEFAULT_SEED
@@ -31,3 +32,10 @@ class ScoreSettings:
     n_boot: int = DEFAULT_N_BOOT
     n_perm: int = DEFAULT_N_PERM
     seed: int = DEFAULT_SEED
+
+    def __post_init__(self) -> None:
+        # every front door (CLI, Python API, inspect and lmms-eval tasks) builds these: NaN would pass a range
+        # check (every comparison with it is false) and score no boundary at all
+        for name, values in (("threshold", [self.threshold]), ("thresholds", list(self.thresholds))):
+            for x in values:
+                check_range(name, float(x), 0.0, 1.0)

@@ -28,13 +28,21 @@ answer, from a model with another name).
 Reasoning: ``reasoning=`` a function of the request body returns the text a
 reasoning server (vLLM, SGLang with a reasoning parser) puts beside the
 answer, in ``reasoning_field`` (``reasoning_content``, vLLM's newer
-``reasoning``, or ``both``, as vLLM sent during its rename). Every request the server saw, with
+``reasoning``, or ``both``, as vLLM sent during its rename).
+
+Credentials: with ``echo_credentials=True`` every answer and every error message quotes what the request
+carried, as a careless proxy or debugging server would: the ``Authorization`` header, its credential, the
+``user:password`` a Basic one decodes to and the password alone, the request path's query and its values.
+A test of the secret scrubber then finds each encoding the client sent in what comes back.
+
+Every request the server saw, with
 its headers and body, is kept in :attr:`FakeOpenAIServer.requests`; nothing is
 logged or written to disk.
 """
 
 from __future__ import annotations
 
+import base64
 import hashlib
 import json
 import socket
@@ -46,6 +54,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Literal
+from urllib.parse import parse_qsl, urlsplit
 
 FaultKind = Literal[
     "429",
@@ -127,6 +136,7 @@ class FakeOpenAIServer:
         reasoning_field: str = "reasoning_content",
         host: str = "127.0.0.1",
         port: int = 0,
+        echo_credentials: bool = False,
     ) -> None:
         if reasoning_field not in ("reasoning_content", "reasoning", "both"):
             raise ValueError(f"reasoning_field must be reasoning_content, reasoning or both, not {reasoning_field!r}")
@@ -135,6 +145,7 @@ class FakeOpenAIServer:
         self.responder: Responder = responder or expected_answer
         self.reasoning = reasoning
         self.reasoning_field = reasoning_field
+        self.echo_credentials = echo_credentials
         self._faults: deque[Fault] = deque()
         self._requests: list[RecordedRequest] = []
         self._lock = threading.Lock()
@@ -243,6 +254,23 @@ def _completion(body: dict, text: str) -> dict:
     }
 
 
+def credential_echo(headers: dict[str, str], path: str) -> str:
+    """What a request carried that is a credential, quoted in every form it came in (``echo_credentials``)."""
+    auth = headers.get("authorization", "")
+    scheme, _, credential = auth.partition(" ")
+    parts = [f"Authorization: {auth}", f"credential {credential}"]
+    if scheme.lower() == "basic":
+        try:
+            decoded = base64.b64decode(credential, validate=True).decode("utf-8")
+        except (ValueError, UnicodeDecodeError):
+            decoded = ""
+        parts += [f"decoded {decoded}", f"password {decoded.partition(':')[2]}"]
+    query = urlsplit(path).query
+    if query:
+        parts += [f"query {query}", "values " + " ".join(v for _, v in parse_qsl(query))]
+    return "[credentials seen: " + "; ".join(parts) + "]"
+
+
 def _headers(handler: BaseHTTPRequestHandler) -> dict[str, str]:
     return {k.lower(): v for k, v in handler.headers.items()}  # HTTP header names are case-insensitive
 
@@ -287,6 +315,8 @@ class _Handler(BaseHTTPRequestHandler):
         self.wfile.write(data)
 
     def _send_error(self, status: int, message: str, kind: str, headers: dict[str, str] | None = None) -> None:
+        if self.fake.echo_credentials:
+            message = f"{message} {credential_echo(_headers(self), self.path)}"
         self._send_json(status, {"error": {"message": message, "type": kind}}, headers=headers)
 
     def _not_found(self) -> None:
@@ -341,12 +371,16 @@ class _Handler(BaseHTTPRequestHandler):
         if self.fake.latency_s > 0 and self.fake._closing.wait(self.fake.latency_s):
             return
         if fault is None:
-            self._send_json(200, self._with_reasoning(body, _completion(body, self.fake.responder(body))))
+            self._send_json(200, self._with_reasoning(body, _completion(body, self._answer(body))))
         elif fault.kind in NO_CAPTION_KINDS:
-            doc = _completion(body, self.fake.responder(body))
+            doc = _completion(body, self._answer(body))
             self._send_json(200, _no_caption(fault.kind, self._with_reasoning(body, doc)))
         else:
             self._serve_fault(fault, body)
+
+    def _answer(self, body: dict) -> str:
+        text = self.fake.responder(body)
+        return f"{text} {credential_echo(_headers(self), self.path)}" if self.fake.echo_credentials else text
 
     def _with_reasoning(self, body: dict, doc: dict) -> dict:
         if self.fake.reasoning is not None and isinstance(doc.get("choices"), list) and doc["choices"]:
