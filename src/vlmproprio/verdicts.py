@@ -44,6 +44,11 @@ VERDICT_RULES = {
     "inconclusive": "anything else: a positive effect is neither established nor excluded below the stated bound",
     "not tested": "the run lacks condition A or B",
 }
+COMBINED_RULE = (
+    "an intersection-union test: the combined claim is supported only when every hypothesis under it is supported "
+    "(each at its Holm-corrected level, so the combined error rate stays at most alpha); not supported when any is "
+    "not supported; not tested when any is not tested; else inconclusive. Its p is the largest Holm p under it"
+)
 BOUND_RULE = (
     "the largest effect still compatible with the data: for a rubric item right or wrong per episode, the exact "
     "one-sided 95 % upper bound of the difference from its discordant pairs (Clopper–Pearson bounds of both "
@@ -67,8 +72,25 @@ MIN_HEAVY_RECOVERY_SHARE = 0.20
 # frame captions missing because the server's answers held none (refusals, tool calls, filters, ...), at least
 # this share of all frame captions: most of the model's captions were never written
 MIN_NO_ANSWER_SHARE = 0.50
+# leaks and ceilings: scores a model cannot reach from what it is shown. Without state ("none", images only) the
+# varying part of the trajectory (the target compartment among four) right in at least this share of a task's
+# episodes; boundaries at +-1 frame with at least this mean F1; final captions that are the ground-truth
+# instruction word for word (of at least MIN_LEAK_WORDS words) in at least this share of cells
+LEAK_TRAJECTORY_SHARE = 0.9
+LEAK_MIN_EPISODES = 4
+LEAK_BOUNDARY_F1 = 0.9
+LEAK_INSTRUCTION_SHARE = 0.25
+MIN_LEAK_WORDS = 6
+NO_STATE_CONDITIONS = ("none",)
+# frame captions made mostly of numbers: the model copies the state instead of describing the motion
+STATE_ECHO_SHARE = 0.5
 GROUP_EDGE_RATIO = 1.5  # points on group edges / expected under uniform placement, at least this ...
 GROUP_EDGE_P = 0.001  # ... and a one-sided binomial p-value below this
+# every fixed schedule up to this period (and every offset) is checked the same way ('periodic'), at a ratio of
+# at least PERIODIC_RATIO and the p-value corrected for the number of schedules: a metronome is caught at any
+# period; real boundaries (phases of 3-15 frames, different in every episode) are not periodic
+MAX_PERIOD = 12
+PERIODIC_RATIO = 2.0
 WORD_RE = re.compile(r"^(?:[A-Za-z]+(?:['-][A-Za-z]+)*|[+-]?\d+(?:[.,]\d+)*%?)$")
 STRIP = ".,;:!?()[]{}\"'`*"
 
@@ -96,14 +118,26 @@ class Hypothesis:
 
 
 @dataclass(frozen=True)
+class CombinedClaim:
+    """One question answered by several primary hypotheses at once: supported only when every one of them is
+    (an intersection-union test, ``COMBINED_RULE``)."""
+
+    id: str
+    description: str
+    all_of: tuple[str, ...]
+
+
+@dataclass(frozen=True)
 class Claims:
-    """The pre-registered primary hypotheses of a claims file, where they come from (source, version, sha256), alpha."""
+    """The pre-registered primary hypotheses of a claims file, where they come from (source, version, sha256), alpha,
+    and the combined claims read from them."""
 
     alpha: float
     hypotheses: tuple[Hypothesis, ...]
     source: str
     sha256: str
     version: int | str | None = None
+    combined: tuple[CombinedClaim, ...] = ()
 
     def to_dict(self) -> dict:
         return {
@@ -114,6 +148,8 @@ class Claims:
             "correction": "Holm (family-wise, per model, over the primary hypotheses)",
             "exploratory": "Benjamini-Hochberg q-values (per model, over every other paired test)",
             "primary": [asdict(h) for h in self.hypotheses],
+            "combined": [{**asdict(c), "all_of": list(c.all_of)} for c in self.combined],
+            "combined_rule": COMBINED_RULE,
         }
 
 
@@ -146,7 +182,30 @@ def load_claims(path: str | Path | None = None) -> Claims:
             Hypothesis(str(hid), spec["description"], spec["metric"], spec["a"], spec["b"], spec.get("task", "all"))
         )
     source = f"vlmproprio/{p.name}" if path is None else str(p)
-    return Claims(float(alpha), tuple(hyps), source, hashlib.sha256(raw).hexdigest(), data.get("version"))
+    combined = _combined_claims(p, data.get("combined"), {h.id for h in hyps})
+    return Claims(float(alpha), tuple(hyps), source, hashlib.sha256(raw).hexdigest(), data.get("version"), combined)
+
+
+def _combined_claims(p: Path, spec, ids: set[str]) -> tuple[CombinedClaim, ...]:
+    """The ``combined`` mapping of a claims file: id -> description and ``all_of`` (primary hypothesis ids)."""
+    if spec is None:
+        return ()
+    if not isinstance(spec, dict):
+        raise ClaimsError(f"{p}: 'combined' must be a mapping of claim id -> description, all_of")
+    out = []
+    for cid, c in spec.items():
+        if not isinstance(c, dict) or set(c) != {"description", "all_of"} or not isinstance(c["description"], str):
+            raise ClaimsError(f"{p}: combined.{cid}: expected exactly 'description' (text) and 'all_of' (a list)")
+        parts = c["all_of"]
+        if not isinstance(parts, list) or len(parts) < 2 or not all(isinstance(x, str) for x in parts):
+            raise ClaimsError(f"{p}: combined.{cid}: all_of must list at least two primary hypothesis ids")
+        unknown = [x for x in parts if x not in ids]
+        if unknown:
+            raise ClaimsError(f"{p}: combined.{cid}: all_of names unknown hypotheses {', '.join(unknown)}")
+        if str(cid) in ids:
+            raise ClaimsError(f"{p}: combined.{cid}: the id is a primary hypothesis's too")
+        out.append(CombinedClaim(str(cid), c["description"], tuple(parts)))
+    return tuple(out)
 
 
 # ---------------------------------------------------------------------------------------------- families
@@ -241,7 +300,85 @@ def verdicts(paired: Sequence[Mapping], claims: Claims, models: Iterable[str]) -
     return out
 
 
+def combined_verdict(parts: Sequence[Mapping]) -> str:
+    """``COMBINED_RULE`` over the verdicts of the hypotheses under one combined claim."""
+    got = [v["verdict"] for v in parts]
+    if all(v == "supported" for v in got):
+        return "supported"
+    for verdict in ("not supported", "not tested"):
+        if verdict in got:
+            return verdict
+    return "inconclusive"
+
+
+def combined_verdicts(hypotheses: Sequence[Mapping], claims: Claims, models: Iterable[str]) -> list[dict]:
+    """One verdict per model and combined claim, from the hypotheses' verdicts (``verdicts``), with the reason."""
+    out = []
+    for model in models:
+        mine = {v["hypothesis"]: v for v in hypotheses if v["model"] == model}
+        for c in claims.combined:
+            parts = [mine[h] for h in c.all_of]
+            verdict = combined_verdict(parts)
+            ps = [v.get("p_holm") for v in parts]
+            failing = [v["hypothesis"] for v in parts if v["verdict"] != "supported"]
+            out.append(
+                {
+                    "model": model,
+                    "claim": c.id,
+                    "description": c.description,
+                    "all_of": list(c.all_of),
+                    "verdict": verdict,
+                    "p": max(ps) if None not in ps else None,  # the intersection-union test's p
+                    "parts": {v["hypothesis"]: v["verdict"] for v in parts},
+                    "because": "every hypothesis under it is supported"
+                    if not failing
+                    else "; ".join(f"{h} is {mine[h]['verdict']}" for h in failing),
+                    "alpha": claims.alpha,
+                }
+            )
+    return out
+
+
+def format_combined(c: Mapping) -> str:
+    """'state_content_helps_trajectory: not supported (trajectory_both_vs_shuffled is not supported)'."""
+    p = c.get("p")
+    ptxt = "" if p is None else f", p = {'<0.001' if p < 0.001 else f'{p:.3f}'}"
+    return f"{c['claim']}: {c['verdict']}{ptxt} ({c['because']})"
+
+
+def verdict_doc_lines(doc: Mapping) -> list[str]:
+    """What a score's verdicts say, one line each, most important first: the sanity warnings, the combined claims,
+    then the hypotheses under them (``score``, ``report`` and report.md print these)."""
+    out = [f"⚠ {w['model']}: {w['message']}" for w in doc.get("warnings", [])]
+    out += [f"{c['model']} — CLAIM {format_combined(c)}" for c in doc.get("combined", [])]
+    out += [f"{v['model']} — {format_verdict(v)}" for v in doc.get("verdicts", [])]
+    return out
+
+
 # ---------------------------------------------------------------------------------------------- sanity
+
+
+@dataclass(frozen=True)
+class FinalCell:
+    """What the leak checks read of one cell (episode x condition)."""
+
+    task: str
+    condition: str
+    truth: str  # the episode's trajectory ground truth that varies within its task (a compartment), or ""
+    trajectory_correct: bool
+    is_instruction: bool  # the final caption is the episode's ground-truth instruction, word for word
+    boundary_f1: float | None  # boundary F1 (+-1 frame) at the fixed threshold
+
+
+def _words(text: str) -> list[str]:
+    return re.findall(r"[a-z0-9]+", (text or "").lower())
+
+
+def same_sentence(caption: str, instruction: str) -> bool:
+    """``caption`` says ``instruction`` word for word (case and punctuation aside), for an instruction long enough
+    (``MIN_LEAK_WORDS``) that a model does not write it by chance."""
+    words = _words(instruction)
+    return len(words) >= MIN_LEAK_WORDS and _words(caption) == words
 
 
 @dataclass
@@ -259,6 +396,7 @@ class ModelOutputs:
     final_hits: list[int] = field(default_factory=list)  # lexicon hits of each final caption
     # per cell: (number of frames, segmentation points at the reported threshold)
     cells: list[tuple[int, list[int]]] = field(default_factory=list)
+    finals: list[FinalCell] = field(default_factory=list)
 
     def extend(self, later: ModelOutputs) -> None:
         """Add what ``later`` read from the cells after these (lists in order, counts summed)."""
@@ -332,6 +470,51 @@ def group_edge_excess(cells: Sequence[tuple[int, Sequence[int]]], group_size: in
     }
 
 
+def lattice_excess(cells: Sequence[tuple[int, Sequence[int]]], period: int, offset: int) -> dict:
+    """Points at positions j with j mod ``period`` = ``offset``, against their expectation if the same points
+    fell uniformly at random (per cell: its points times the lattice's share of its positions)."""
+    observed = total = 0
+    expected = 0.0
+    for n_frames, points in cells:
+        if n_frames < 2:
+            continue
+        n_pos = n_frames - 1
+        on = len(range(offset, n_pos, period))
+        observed += sum(1 for j in points if j % period == offset)
+        total += len(points)
+        expected += len(points) * on / n_pos
+    p = binomial_tail(observed, total, expected / total) if total and expected else 1.0
+    return {
+        "points": total,
+        "on_lattice": observed,
+        "expected": expected,
+        "p_value": float(p),
+        "ratio": observed / expected if expected else None,
+    }
+
+
+def periodic_excess(cells: Sequence[tuple[int, Sequence[int]]], group_size: int) -> dict | None:
+    """The fixed schedule (period 2 .. ``MAX_PERIOD``, every offset) that the points follow most, beyond
+    chance, with its p-value corrected for the number of schedules tried (Bonferroni); None when no points.
+    The frame groups' own lattice (period a multiple of k at offset k - 1) is the group-edges check's."""
+    best = None
+    tried = 0
+    for period in range(2, MAX_PERIOD + 1):
+        for offset in range(period):
+            if period % group_size == 0 and offset % group_size == group_size - 1:
+                continue
+            tried += 1
+            e = lattice_excess(cells, period, offset)
+            if e["ratio"] is None:
+                continue
+            if best is None or e["p_value"] < best["p_value"]:
+                best = {**e, "period": period, "offset": offset}
+    if best is not None:
+        best["p_corrected"] = min(1.0, best["p_value"] * tried)
+        best["schedules"] = tried
+    return best
+
+
 def sanity_warnings(outputs: Mapping[str, ModelOutputs], group_size: int) -> list[dict]:
     """Warnings per model (see the module docstring); each has model, kind, message and the measured values."""
     out = []
@@ -385,8 +568,18 @@ def sanity_warnings(outputs: Mapping[str, ModelOutputs], group_size: int) -> lis
                     "value": share,
                 }
             )
-        if no_hit > MAX_NO_HIT_FINAL_SHARE:
-            numbers = number_share(o.all_captions)
+        numbers = number_share(o.all_captions) if o.all_captions else 0.0
+        if numbers >= STATE_ECHO_SHARE:
+            out.append(
+                {
+                    "model": model,
+                    "kind": "state-echo",
+                    "message": f"captions made of numbers: {100 * numbers:.0f}% of caption tokens are numbers "
+                    f"(limit {100 * STATE_ECHO_SHARE:g}%): the model copies the state instead of describing the motion",
+                    "value": numbers,
+                }
+            )
+        elif no_hit > MAX_NO_HIT_FINAL_SHARE:
             out.append(
                 {
                     "model": model,
@@ -410,7 +603,62 @@ def sanity_warnings(outputs: Mapping[str, ModelOutputs], group_size: int) -> lis
                     **{k: v for k, v in g.items() if k != "ratio"},
                 }
             )
+        out += _periodic_warning(model, o, group_size)
+        out += leak_warnings(model, o.finals)
     return out
+
+
+def leak_warnings(model: str, finals: Sequence[FinalCell]) -> list[dict]:
+    """'leak': scores the model cannot reach from what it was shown (the thresholds above), one warning each."""
+    out = []
+    found: list[str] = []
+    for task in sorted({f.task for f in finals}):
+        for cond in NO_STATE_CONDITIONS:
+            cells = [f for f in finals if f.task == task and f.condition == cond]
+            if len(cells) < LEAK_MIN_EPISODES or len({f.truth for f in cells}) < 2:
+                continue  # a trajectory shared by every episode is the ceiling a constant caption reaches
+            share = sum(f.trajectory_correct for f in cells) / len(cells)
+            if share >= LEAK_TRAJECTORY_SHARE:
+                found.append(
+                    f"the trajectory (target compartment) is right in {sum(f.trajectory_correct for f in cells)} of "
+                    f"{len(cells)} {task} episodes under {cond}, which shows no state"
+                )
+            f1s = [f.boundary_f1 for f in cells if f.boundary_f1 is not None]
+            if f1s and sum(f1s) / len(f1s) >= LEAK_BOUNDARY_F1:
+                found.append(f"boundary F1 is {sum(f1s) / len(f1s):.2f} on {task} under {cond}")
+    same = sum(f.is_instruction for f in finals)
+    if finals and same / len(finals) >= LEAK_INSTRUCTION_SHARE:
+        found.append(f"{same} of {len(finals)} final captions are the episode's ground-truth instruction word for word")
+    for what in found:
+        out.append(
+            {
+                "model": model,
+                "kind": "leak",
+                "message": f"possible ground-truth leak: {what}; the model may be given the answer (check the "
+                "prompt, the images and the backend): its scores cannot be read as what it saw",
+                "value": None,
+            }
+        )
+    return out
+
+
+def _periodic_warning(model: str, o: ModelOutputs, group_size: int) -> list[dict]:
+    """'periodic': the segmentation points follow a fixed schedule (every period, every offset), not the episode."""
+    e = periodic_excess(o.cells, group_size)
+    if e is None or e["ratio"] is None or e["ratio"] < PERIODIC_RATIO or e["p_corrected"] >= GROUP_EDGE_P:
+        return []
+    return [
+        {
+            "model": model,
+            "kind": "periodic",
+            "message": f"segmentation follows a fixed schedule: {e['on_lattice']} of {e['points']} points fall every "
+            f"{e['period']} frames (position mod {e['period']} = {e['offset']}), {e['ratio']:.1f}x the "
+            f"{e['expected']:.1f} expected by chance (binomial p = {e['p_corrected']:.1g}, corrected for "
+            f"{e['schedules']} schedules): the points keep time, they do not follow the episode",
+            "value": e["ratio"],
+            **{k: v for k, v in e.items() if k != "ratio"},
+        }
+    ]
 
 
 def _no_answer_warning(model: str, o: ModelOutputs, n_frames: int) -> list[dict]:
