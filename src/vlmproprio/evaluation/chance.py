@@ -21,6 +21,7 @@ from vlmproprio.segmentation import (
     CHANCE_SEED,
     Truth,
     chance_groups,
+    chance_own_period,
     chance_periodic,
     chance_random,
     chance_shifted,
@@ -146,12 +147,13 @@ class ChanceTable:
 
 
 # the content-free baselines a lift is finally read against (CONTENT_FREE_RULE): the best of these per row
-CONTENT_FREE = ("chance", "periodic", "shift", "groups")
+CONTENT_FREE = ("chance", "periodic", "shift", "period", "groups")
 CONTENT_FREE_RULE = (
-    "the best (highest) of four baselines that read nothing, each with as many points as the model placed: at "
+    "the best (highest) of five baselines that read nothing, each with as many points as the model placed: at "
     "random, evenly spaced at a random phase offset (the mean over every offset), the model's own points "
-    "circularly shifted by a random amount (the mean over every shift), and on the edges of the pipeline's frame "
-    "groups (every edge first, the rest at random)"
+    "circularly shifted by a random amount (the mean over every shift), a metronome at the points' own most "
+    "common gap at a random phase (its count may differ by one), and on the edges of the pipeline's frame groups "
+    "(every edge first, the rest at random)"
 )
 
 
@@ -184,6 +186,7 @@ def _chance_columns(
     even = shared.of(shared.even, key, lambda: score_points(evenly_spaced(truth.n_frames, k), truth))
     periodic = shared.of(shared.periodic, key, lambda: chance_periodic(truth, k))
     shift = chance_shifted(points, truth)
+    period = chance_own_period(points, truth)
     groups = shared.of(shared.group_chance, key, lambda: chance_groups(truth, k, shared.group_size))
     for m in CHANCE_METRICS:
         score = row[f"{prefix}{m}"]
@@ -193,7 +196,8 @@ def _chance_columns(
         row[f"{prefix}{m}_periodic"] = periodic[m]
         row[f"{prefix}{m}_shift"] = shift[m]
         row[f"{prefix}{m}_groups"] = groups[m]
-        best = max(rand[m], periodic[m], shift[m], groups[m])
+        row[f"{prefix}{m}_period"] = period[m]
+        best = max(rand[m], periodic[m], shift[m], period[m], groups[m])
         row[f"{prefix}{m}_cf"] = best
         row[f"{prefix}{m}_lift_cf"] = score - best
 

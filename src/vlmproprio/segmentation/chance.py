@@ -6,6 +6,7 @@
   offset (``chance_periodic``: what a caption stream that changes at a fixed period scores at a random phase);
 * shifted: the segmentation's own points circularly shifted, averaged over every shift (``chance_shifted``:
   their spacing kept, their alignment with the episode lost);
+* own period: a metronome at the points' most common gap, averaged over every phase (``chance_own_period``);
 * the edges of the pipeline's frame groups, as many of them as the segmentation has points (``chance_groups``).
 
 Each places as many points as the segmentation it is read against: a baseline with more points would make a
@@ -112,6 +113,29 @@ def chance_shifted(points: Sequence[int], truth: Truth, metrics: Sequence[str] =
     return _mean_scores(shifted_positions(points, n_pos), truth, metrics)
 
 
+def own_period(points: Sequence[int]) -> int | None:
+    """The most common gap between consecutive points (the smallest of equally common ones); None below 2 points."""
+    pts = sorted(set(points))
+    gaps = [b - a for a, b in itertools.pairwise(pts)]
+    if not gaps:
+        return None
+    counts = {g: gaps.count(g) for g in gaps}
+    return min(counts, key=lambda g: (-counts[g], g))
+
+
+def chance_own_period(points: Sequence[int], truth: Truth, metrics: Sequence[str] = CHANCE_METRICS) -> dict[str, float]:
+    """Expected score of a metronome at the points' own period (``own_period``) and a random phase: the mean over
+    every offset o of the points o, o + period, ... (a count that may differ from the points' by one). A
+    segmentation that keeps time at one period scores this on average over its phases, so its lift over it is at
+    most 0 in expectation; the circular shift only approaches that (its wrap breaks the period once)."""
+    period = own_period(points)
+    if period is None:
+        return chance_shifted(points, truth, metrics)
+    n_pos = truth.n_frames - 1
+    rows = [score_points(list(range(o, n_pos, period)), truth, metrics) for o in range(period)]
+    return {m: math.fsum(r[m] for r in rows) / len(rows) for m in metrics}
+
+
 def chance_periodic(truth: Truth, k: int, metrics: Sequence[str] = CHANCE_METRICS) -> dict[str, float]:
     """Expected score of k evenly spaced points at a uniformly random phase offset (every offset, exactly)."""
     return chance_shifted(evenly_spaced(truth.n_frames, k), truth, metrics)
@@ -147,7 +171,8 @@ def chance_groups(
             picks = np.array(list(itertools.combinations(range(len(rest)), extra)), dtype=np.int64)
         else:
             picks = random_positions(len(rest), extra, GROUP_DRAWS, seed)
-        pos = np.sort(np.concatenate([np.broadcast_to(edges, (len(picks), len(edges))), rest[picks]], axis=1), axis=1)
+        fixed = np.broadcast_to(np.asarray(edges, dtype=np.int64), (len(picks), len(edges)))
+        pos = np.sort(np.concatenate([fixed, rest[picks]], axis=1), axis=1)
     return _mean_scores(pos, truth, metrics)
 
 
