@@ -17,6 +17,7 @@ from vlmproprio.evaluation.inputs import RunInputs
 from vlmproprio.evaluation.metrics import CellView, computed_columns
 from vlmproprio.parallel import map_groups
 from vlmproprio.parsing import HEAVY_CLASSES
+from vlmproprio.sanity import FinalCell, ModelOutputs, same_sentence
 from vlmproprio.scoring import (
     ITEMS,
     CaptionScore,
@@ -30,7 +31,6 @@ from vlmproprio.scoring import (
 )
 from vlmproprio.segmentation import CosineCache, SweepPoint, boundaries_at, cosine_trace, sweep
 from vlmproprio.transcripts import Transcript, cell_key, frames_missing_by_problem
-from vlmproprio.verdicts import FinalCell, ModelOutputs, same_sentence
 
 
 def _flag(b: bool) -> int:

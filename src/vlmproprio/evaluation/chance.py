@@ -152,8 +152,8 @@ CONTENT_FREE_RULE = (
     "the best (highest) of five baselines that read nothing, each with as many points as the model placed: at "
     "random, evenly spaced at a random phase offset (the mean over every offset), the model's own points "
     "circularly shifted by a random amount (the mean over every shift), a metronome at the points' own most "
-    "common gap at a random phase (its count may differ by one), and on the edges of the pipeline's frame groups "
-    "(every edge first, the rest at random)"
+    "common gap at a random phase (where its count is within one of the model's at every phase), and on the "
+    "edges of the pipeline's frame groups (every edge first, the rest at random)"
 )
 
 
@@ -196,8 +196,8 @@ def _chance_columns(
         row[f"{prefix}{m}_periodic"] = periodic[m]
         row[f"{prefix}{m}_shift"] = shift[m]
         row[f"{prefix}{m}_groups"] = groups[m]
-        row[f"{prefix}{m}_period"] = period[m]
-        best = max(rand[m], periodic[m], shift[m], period[m], groups[m])
+        row[f"{prefix}{m}_period"] = period[m] if period is not None else None
+        best = max(rand[m], periodic[m], shift[m], groups[m], *([period[m]] if period is not None else []))
         row[f"{prefix}{m}_cf"] = best
         row[f"{prefix}{m}_lift_cf"] = score - best
 

@@ -9,15 +9,9 @@ from dataclasses import dataclass
 from vlmproprio.conditions import BASELINE, PAPER_CONDITIONS
 from vlmproprio.evaluation.definitions import PAIRED_METRICS, ScoreSettings
 from vlmproprio.evaluation.inputs import condition_order
+from vlmproprio.sanity import ModelOutputs, sanity_warnings
 from vlmproprio.stats import DEFAULT_N_BOOT, DEFAULT_N_PERM, DEFAULT_SEED, paired_difference
-from vlmproprio.verdicts import (
-    Claims,
-    ModelOutputs,
-    combined_verdicts,
-    mark_families,
-    sanity_warnings,
-    verdicts,
-)
+from vlmproprio.verdicts import Claims, combined_verdicts, mark_families, verdicts
 
 # the final caption's rubric items, right (1) or not (0) per episode: their differences get exact bounds
 BINARY_METRICS = tuple(m for m in PAIRED_METRICS if m.endswith(("_correct", "_mentioned")))

@@ -373,7 +373,7 @@ def controls_table(s: RunScores) -> Table:
 
 def parsing_table(s: RunScores) -> Table | None:
     """Per model: how its answers were parsed (meta.json "parsing"; None for scores made before it was kept)."""
-    from vlmproprio.verdicts import MIN_HEAVY_RECOVERY_SHARE
+    from vlmproprio.sanity import MIN_HEAVY_RECOVERY_SHARE
 
     parsing = s.meta.get("parsing")
     if not isinstance(parsing, dict) or not isinstance(parsing.get("models"), dict):

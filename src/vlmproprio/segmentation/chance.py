@@ -123,16 +123,23 @@ def own_period(points: Sequence[int]) -> int | None:
     return min(counts, key=lambda g: (-counts[g], g))
 
 
-def chance_own_period(points: Sequence[int], truth: Truth, metrics: Sequence[str] = CHANCE_METRICS) -> dict[str, float]:
+def chance_own_period(
+    points: Sequence[int], truth: Truth, metrics: Sequence[str] = CHANCE_METRICS
+) -> dict[str, float] | None:
     """Expected score of a metronome at the points' own period (``own_period``) and a random phase: the mean over
-    every offset o of the points o, o + period, ... (a count that may differ from the points' by one). A
-    segmentation that keeps time at one period scores this on average over its phases, so its lift over it is at
-    most 0 in expectation; the circular shift only approaches that (its wrap breaks the period once)."""
+    every offset o of the points o, o + period, ... across the whole episode. A segmentation that keeps time at one
+    period scores this on average over its phases, so its lift over it is at most 0 in expectation (the circular
+    shift only approaches that: its wrap breaks the period once). None when such a metronome would place more
+    than one point more or fewer than the segmentation does at some offset: then the points do not keep time
+    (they cluster), and a baseline with another count would not be comparable."""
     period = own_period(points)
     if period is None:
-        return chance_shifted(points, truth, metrics)
-    n_pos = truth.n_frames - 1
-    rows = [score_points(list(range(o, n_pos, period)), truth, metrics) for o in range(period)]
+        return None
+    n_pos, k = truth.n_frames - 1, len(set(points))
+    lattices = [list(range(o, n_pos, period)) for o in range(period)]
+    if any(abs(len(lat) - k) > 1 for lat in lattices):
+        return None
+    rows = [score_points(lat, truth, metrics) for lat in lattices]
     return {m: math.fsum(r[m] for r in rows) / len(rows) for m in metrics}
 
 
