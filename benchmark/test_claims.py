@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from vlmproprio.verdicts import format_verdict, load_claims
+from vlmproprio.verdicts import format_combined, format_verdict, load_claims
 
 EXPECTED = yaml.safe_load((Path(__file__).parent / "claims.yml").read_text())
 CLAIMS = load_claims()
@@ -31,7 +31,7 @@ def _require_full_run(bench_model, bench_session) -> None:
 
 
 def test_expectations_name_known_hypotheses() -> None:
-    ids = {h.id for h in CLAIMS.hypotheses}
+    ids = {h.id for h in CLAIMS.hypotheses} | {c.id for c in CLAIMS.combined}
     for model, exp in EXPECTED["expected"].items():
         assert set(exp) <= ids, f"benchmark/claims.yml: {model} names unknown hypotheses {set(exp) - ids}"
         assert set(exp.values()) <= {"supported", "not supported", "inconclusive"}, model
@@ -57,6 +57,26 @@ def test_primary_verdict(bench_model, bench_session, hypothesis: str) -> None:
     )
 
 
+@pytest.mark.parametrize("claim", [c.id for c in CLAIMS.combined])
+def test_combined_claim(bench_model, bench_session, claim: str) -> None:
+    """The combined claims (both > none AND both > both_shuffled, ...) are gated like the hypotheses under them."""
+    _require_full_run(bench_model, bench_session)
+    c = next(c for c in CLAIMS.combined if c.id == claim)
+    needed = {x for h in CLAIMS.hypotheses if h.id in c.all_of for x in (h.a, h.b)}
+    missing = needed - set(bench_model.conditions)
+    if missing:
+        pytest.skip(f"{claim} needs condition(s) {', '.join(sorted(missing))} (see --conditions)")
+    slug = bench_model.model.slug
+    got = next(v for v in _verdicts(bench_model)["combined"] if v["model"] == slug and v["claim"] == claim)
+    expected = EXPECTED["expected"].get(bench_model.name, {}).get(claim)
+    if expected is None:
+        pytest.skip(f"no expectation in benchmark/claims.yml for {bench_model.name}; observed {format_combined(got)}")
+    assert got["verdict"] == expected, (
+        f"{bench_model.name}: {format_combined(got)}; benchmark/claims.yml expects '{expected}'. "
+        "If the change is meant, update the expectation."
+    )
+
+
 def test_sanity_warnings(bench_model, bench_session) -> None:
     _require_full_run(bench_model, bench_session)
     expected = EXPECTED["warnings"].get(bench_model.name)
@@ -68,6 +88,6 @@ def test_sanity_warnings(bench_model, bench_session) -> None:
         f"{bench_model.name}: warnings {kinds} but benchmark/claims.yml expects {sorted(expected)}: "
         + "; ".join(w["message"] for w in warnings)
     )
-    if {"gibberish", "off-task", "near-constant"} & set(kinds):
+    if {"gibberish", "off-task", "state-echo", "near-constant"} & set(kinds):
         # a model flagged as unreadable must not have a supported claim
         assert not [v for v in _verdicts(bench_model)["verdicts"] if v["verdict"] == "supported"]

@@ -28,7 +28,7 @@ STAGES: list[tuple[str, ...]] = [
     ("runner", "show", "run_folder", "preview"),
     ("scoring", "embeddings", "segmentation"),
     ("stats", "power"),
-    ("verdicts",),
+    ("verdicts", "sanity"),
     ("evaluation", "sidecars"),  # evaluation/: its own order, EVALUATION_ORDER below
     ("report",),
     ("dataset_export", "inspect"),

@@ -8,18 +8,15 @@ from pathlib import Path
 
 import pytest
 
+from vlmproprio.sanity import ModelOutputs, group_edge_excess, non_word_share, sanity_warnings
 from vlmproprio.stats import benjamini_hochberg, holm, paired_difference
 from vlmproprio.verdicts import (
     VERDICT_RULES,
     ClaimsError,
-    ModelOutputs,
     effect_bound,
     format_verdict,
-    group_edge_excess,
     load_claims,
     mark_families,
-    non_word_share,
-    sanity_warnings,
     verdict_of,
     verdicts,
 )
@@ -133,7 +130,7 @@ def test_verdicts_carry_the_bound_and_the_test_method():
 def test_binomial_tail_equals_scipy():
     from scipy.stats import binomtest
 
-    from vlmproprio.verdicts import binomial_tail
+    from vlmproprio.sanity import binomial_tail
 
     for k, n, p in [(4, 4, 0.2), (0, 10, 0.3), (340, 1194, 0.188), (3, 50, 0.01), (50, 50, 0.5), (1, 1, 0.999)]:
         assert binomial_tail(k, n, p) == pytest.approx(binomtest(k, n, p, alternative="greater").pvalue, rel=1e-9)
@@ -231,9 +228,10 @@ def test_tiny_random_model_is_flagged_and_the_reference_captioner_is_not(tmp_pat
         assert not kinds[readable] & {"gibberish", "near-constant", "missing-captions", "heavy-recovery"}, readable
 
 
-def test_captions_made_of_numbers_are_off_task_not_gibberish():
+def test_captions_made_of_numbers_are_a_state_echo_not_gibberish():
     """A model that echoes the state writes numbers: every token is a number (0 % non-words), and its final
-    captions name nothing the rubric knows. That is 'off-task', with the share of numbers said, never 'gibberish'."""
+    captions name nothing the rubric knows. That is 'state-echo', with the share of numbers said, never 'gibberish'
+    nor the generic 'off-task'."""
     echo = ModelOutputs(
         frame_captions=[f"{i * 0.01:.3f} -0.512 1.204 {i}" for i in range(100)],
         cell_distinct=[0.9] * 10,
@@ -242,5 +240,5 @@ def test_captions_made_of_numbers_are_off_task_not_gibberish():
         cells=[(11, [2]), (11, [6])],
     )
     w = {x["kind"]: x for x in sanity_warnings({"echo": echo}, 5)}
-    assert "gibberish" not in w
-    assert w["off-task"]["number_share"] == 1.0 and "100% of caption tokens are numbers" in w["off-task"]["message"]
+    assert "gibberish" not in w and "off-task" not in w
+    assert w["state-echo"]["number_share"] == 1.0 and "100% of caption tokens are numbers" in w["state-echo"]["message"]

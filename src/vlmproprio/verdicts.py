@@ -1,4 +1,4 @@
-"""Verdicts a reviewer accepts: pre-registered primary hypotheses, corrected tests, sanity warnings.
+"""Verdicts a reviewer accepts: pre-registered primary hypotheses, corrected tests, combined claims.
 
 * **Primary hypotheses** are read from a claims file (default: the packaged ``vlmproprio/claims.yml``, the
   pre-registration; ``vlmproprio score RUN_DIR --claims FILE`` for another one). Each names a metric, two conditions
@@ -11,11 +11,11 @@
   states the largest effect still compatible with the data (``BOUND_RULE``, ``effect_bound``): a
   rubric item right or wrong per episode gets an exact bound from its discordant pairs, because with none of
   them among 22 episodes a bootstrap CI is [0, 0] while effects up to +15.4 pp are not excluded.
-* **Sanity warnings** (per model): near-constant frame captions, gibberish (many non-words), off-task (final
-  captions that name nothing the task's lexicon knows), and segmentation points that fall on the edges of
-  the pipeline's frame groups more often than chance, and frame captions the parser had to place by
-  position rather than read from a label (heavy recovery) -- each means the model's differences cannot be read
-  as "the model used the state".
+* **Combined claims** answer one question with several hypotheses (``COMBINED_RULE``): "the state's content
+  helps" is supported only when both > none and both > both_shuffled are; a captioner that only notices that
+  numbers are present can win the first, never the second.
+* **Sanity warnings** (``vlmproprio.sanity``) say when a model's differences cannot be read as "the model used
+  the state"; the score puts them beside the verdicts.
 
 The format of the claims file and every threshold here are documented in docs/metrics.md.
 """
@@ -24,10 +24,8 @@ from __future__ import annotations
 
 import hashlib
 import math
-import re
-from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from vlmproprio.errors import VlmproprioError
@@ -44,33 +42,17 @@ VERDICT_RULES = {
     "inconclusive": "anything else: a positive effect is neither established nor excluded below the stated bound",
     "not tested": "the run lacks condition A or B",
 }
+COMBINED_RULE = (
+    "an intersection-union test: the combined claim is supported only when every hypothesis under it is supported "
+    "(each at its Holm-corrected level, so the combined error rate stays at most alpha); not supported when any is "
+    "not supported; not tested when any is not tested; else inconclusive. Its p is the largest Holm p under it"
+)
 BOUND_RULE = (
     "the largest effect still compatible with the data: for a rubric item right or wrong per episode, the exact "
     "one-sided 95 % upper bound of the difference from its discordant pairs (Clopper–Pearson bounds of both "
     "discordant shares at 97.5 %, combined by Bonferroni); for any other metric, the upper end of the "
     "bootstrap 95 % CI"
 )
-
-# sanity thresholds (docs/metrics.md explains each)
-# distinct frame captions / frames of a cell (episode x condition), averaged over cells, below this: near-constant.
-# Per cell, not over the run: a templated captioner repeats its sentences across 22 episodes yet changes them
-# within every episode (reference: 0.43, reference-state: 0.30), while a model that ignores its input writes one
-# or two texts per episode (tiny-qwen2-vl: 0.07); a real VLM's captions are nearly all distinct (~1).
-MIN_DISTINCT_PER_CELL = 0.15
-MAX_MISSING_FRAME_SHARE = 0.20  # frame captions missing (unparsed or empty), above this: warn
-MAX_NON_WORD_SHARE = 0.20  # caption tokens that are no word or number, above this: gibberish
-MAX_NO_HIT_FINAL_SHARE = 0.80  # final captions without a single lexicon hit, above this: off-task
-_NUMBER_RE = re.compile(r"[+-]?\d+(?:[.,]\d+)*%?")
-# present frame captions found by position rather than read from a label (parsing.HEAVY_CLASSES), at least
-# this share: the captions may sit on the wrong frames, so the segmentation reads the parser's guess
-MIN_HEAVY_RECOVERY_SHARE = 0.20
-# frame captions missing because the server's answers held none (refusals, tool calls, filters, ...), at least
-# this share of all frame captions: most of the model's captions were never written
-MIN_NO_ANSWER_SHARE = 0.50
-GROUP_EDGE_RATIO = 1.5  # points on group edges / expected under uniform placement, at least this ...
-GROUP_EDGE_P = 0.001  # ... and a one-sided binomial p-value below this
-WORD_RE = re.compile(r"^(?:[A-Za-z]+(?:['-][A-Za-z]+)*|[+-]?\d+(?:[.,]\d+)*%?)$")
-STRIP = ".,;:!?()[]{}\"'`*"
 
 
 class ClaimsError(VlmproprioError):
@@ -96,14 +78,26 @@ class Hypothesis:
 
 
 @dataclass(frozen=True)
+class CombinedClaim:
+    """One question answered by several primary hypotheses at once: supported only when every one of them is
+    (an intersection-union test, ``COMBINED_RULE``)."""
+
+    id: str
+    description: str
+    all_of: tuple[str, ...]
+
+
+@dataclass(frozen=True)
 class Claims:
-    """The pre-registered primary hypotheses of a claims file, where they come from (source, version, sha256), alpha."""
+    """The pre-registered primary hypotheses of a claims file, where they come from (source, version, sha256), alpha,
+    and the combined claims read from them."""
 
     alpha: float
     hypotheses: tuple[Hypothesis, ...]
     source: str
     sha256: str
     version: int | str | None = None
+    combined: tuple[CombinedClaim, ...] = ()
 
     def to_dict(self) -> dict:
         return {
@@ -114,6 +108,8 @@ class Claims:
             "correction": "Holm (family-wise, per model, over the primary hypotheses)",
             "exploratory": "Benjamini-Hochberg q-values (per model, over every other paired test)",
             "primary": [asdict(h) for h in self.hypotheses],
+            "combined": [{**asdict(c), "all_of": list(c.all_of)} for c in self.combined],
+            "combined_rule": COMBINED_RULE,
         }
 
 
@@ -146,7 +142,30 @@ def load_claims(path: str | Path | None = None) -> Claims:
             Hypothesis(str(hid), spec["description"], spec["metric"], spec["a"], spec["b"], spec.get("task", "all"))
         )
     source = f"vlmproprio/{p.name}" if path is None else str(p)
-    return Claims(float(alpha), tuple(hyps), source, hashlib.sha256(raw).hexdigest(), data.get("version"))
+    combined = _combined_claims(p, data.get("combined"), {h.id for h in hyps})
+    return Claims(float(alpha), tuple(hyps), source, hashlib.sha256(raw).hexdigest(), data.get("version"), combined)
+
+
+def _combined_claims(p: Path, spec, ids: set[str]) -> tuple[CombinedClaim, ...]:
+    """The ``combined`` mapping of a claims file: id -> description and ``all_of`` (primary hypothesis ids)."""
+    if spec is None:
+        return ()
+    if not isinstance(spec, dict):
+        raise ClaimsError(f"{p}: 'combined' must be a mapping of claim id -> description, all_of")
+    out = []
+    for cid, c in spec.items():
+        if not isinstance(c, dict) or set(c) != {"description", "all_of"} or not isinstance(c["description"], str):
+            raise ClaimsError(f"{p}: combined.{cid}: expected exactly 'description' (text) and 'all_of' (a list)")
+        parts = c["all_of"]
+        if not isinstance(parts, list) or len(parts) < 2 or not all(isinstance(x, str) for x in parts):
+            raise ClaimsError(f"{p}: combined.{cid}: all_of must list at least two primary hypothesis ids")
+        unknown = [x for x in parts if x not in ids]
+        if unknown:
+            raise ClaimsError(f"{p}: combined.{cid}: all_of names unknown hypotheses {', '.join(unknown)}")
+        if str(cid) in ids:
+            raise ClaimsError(f"{p}: combined.{cid}: the id is a primary hypothesis's too")
+        out.append(CombinedClaim(str(cid), c["description"], tuple(parts)))
+    return tuple(out)
 
 
 # ---------------------------------------------------------------------------------------------- families
@@ -241,196 +260,59 @@ def verdicts(paired: Sequence[Mapping], claims: Claims, models: Iterable[str]) -
     return out
 
 
-# ---------------------------------------------------------------------------------------------- sanity
+def combined_verdict(parts: Sequence[Mapping]) -> str:
+    """``COMBINED_RULE`` over the verdicts of the hypotheses under one combined claim."""
+    got = [v["verdict"] for v in parts]
+    if all(v == "supported" for v in got):
+        return "supported"
+    for verdict in ("not supported", "not tested"):
+        if verdict in got:
+            return verdict
+    return "inconclusive"
 
 
-@dataclass
-class ModelOutputs:
-    """What the sanity checks read about one model's run."""
-
-    frame_captions: list[str] = field(default_factory=list)  # every present frame caption, all cells
-    cell_distinct: list[float] = field(default_factory=list)  # per cell: distinct present frame captions / frames
-    frames_missing: int = 0
-    frames_heavy: int = 0  # present frame captions that needed a heavy recovery
-    # missing frame captions whose Process 1 answer came back without a plain answer (chat.ANSWER_PROBLEMS)
-    frames_missing_problem: int = 0
-    answer_problems: list[str] = field(default_factory=list)  # the class of each request that had one
-    all_captions: list[str] = field(default_factory=list)  # frame, scene and final captions
-    final_hits: list[int] = field(default_factory=list)  # lexicon hits of each final caption
-    # per cell: (number of frames, segmentation points at the reported threshold)
-    cells: list[tuple[int, list[int]]] = field(default_factory=list)
-
-    def extend(self, later: ModelOutputs) -> None:
-        """Add what ``later`` read from the cells after these (lists in order, counts summed)."""
-        for f in fields(self):
-            mine, theirs = getattr(self, f.name), getattr(later, f.name)
-            if isinstance(mine, list):
-                mine += theirs
-            elif type(mine) is int:
-                setattr(self, f.name, mine + theirs)
-            else:
-                raise TypeError(f"ModelOutputs.{f.name}: no rule to add a {type(mine).__name__}")
-
-
-def _token_share(texts: Iterable[str], counts) -> tuple[float, int]:
-    """Share of whitespace tokens (punctuation stripped) for which ``counts`` holds, and the number of tokens;
-    a model repeats its captions across conditions, so each distinct text is split once."""
-    total = hits = 0
-    for t, n in Counter(texts).items():
-        for tok in (t or "").split():
-            w = tok.strip(STRIP)
-            if w:
-                total += n
-                hits += n * bool(counts(w))
-    return (hits / total if total else 0.0), total
-
-
-def non_word_share(texts: Iterable[str]) -> tuple[float, int]:
-    """Share of whitespace tokens (punctuation stripped) that are neither a word of letters nor a number."""
-    return _token_share(texts, lambda w: not WORD_RE.match(w))
-
-
-def number_share(texts: Iterable[str]) -> float:
-    """Share of whitespace tokens (punctuation stripped) that are numbers: captions that echo the state."""
-    return _token_share(texts, _NUMBER_RE.fullmatch)[0]
-
-
-def binomial_tail(k: int, n: int, p: float) -> float:
-    """P(X >= k) for X ~ Binomial(n, p): the one-sided binomial test's p-value (summed in log space, no scipy)."""
-    if k <= 0:
-        return 1.0
-    if p <= 0.0:
-        return 0.0
-    if p >= 1.0:
-        return 1.0
-    logs = [
-        math.lgamma(n + 1) - math.lgamma(i + 1) - math.lgamma(n - i + 1) + i * math.log(p) + (n - i) * math.log1p(-p)
-        for i in range(k, n + 1)
-    ]
-    top = max(logs)
-    return min(1.0, math.exp(top) * math.fsum(math.exp(x - top) for x in logs))
-
-
-def group_edge_excess(cells: Sequence[tuple[int, Sequence[int]]], group_size: int) -> dict:
-    """Points on frame-group edges against their expectation if the same points fell uniformly at random."""
-    observed = total = 0
-    expected = 0.0
-    for n_frames, points in cells:
-        if n_frames < 2:
-            continue
-        edges = set(range(group_size - 1, n_frames - 1, group_size))
-        observed += sum(1 for j in points if j in edges)
-        total += len(points)
-        expected += len(points) * len(edges) / (n_frames - 1)
-    p = binomial_tail(observed, total, expected / total) if total and expected else 1.0
-    return {
-        "points": total,
-        "on_edges": observed,
-        "expected": expected,
-        "ratio": observed / expected if expected else None,
-        "p_value": float(p),
-    }
-
-
-def sanity_warnings(outputs: Mapping[str, ModelOutputs], group_size: int) -> list[dict]:
-    """Warnings per model (see the module docstring); each has model, kind, message and the measured values."""
+def combined_verdicts(hypotheses: Sequence[Mapping], claims: Claims, models: Iterable[str]) -> list[dict]:
+    """One verdict per model and combined claim, from the hypotheses' verdicts (``verdicts``), with the reason."""
     out = []
-    for model, o in outputs.items():
-        n_frames = len(o.frame_captions)
-        distinct = sum(o.cell_distinct) / len(o.cell_distinct) if o.cell_distinct else 1.0
-        if distinct < MIN_DISTINCT_PER_CELL:
+    for model in models:
+        mine = {v["hypothesis"]: v for v in hypotheses if v["model"] == model}
+        for c in claims.combined:
+            parts = [mine[h] for h in c.all_of]
+            verdict = combined_verdict(parts)
+            ps = [v.get("p_holm") for v in parts]
+            failing = [v["hypothesis"] for v in parts if v["verdict"] != "supported"]
             out.append(
                 {
                     "model": model,
-                    "kind": "near-constant",
-                    "message": f"near-constant captions: per episode and condition, {100 * distinct:.1f}% of the frames "
-                    f"have a caption of their own on average (< {100 * MIN_DISTINCT_PER_CELL:g}%; "
-                    f"{len(set(o.frame_captions))} distinct texts among {n_frames} frame captions)",
-                    "value": distinct,
-                }
-            )
-        missing = o.frames_missing / (n_frames + o.frames_missing) if n_frames + o.frames_missing else 0.0
-        if missing > MAX_MISSING_FRAME_SHARE:
-            out.append(
-                {
-                    "model": model,
-                    "kind": "missing-captions",
-                    "message": f"{o.frames_missing} of {n_frames + o.frames_missing} frame captions are missing "
-                    f"({100 * missing:.0f}% > {100 * MAX_MISSING_FRAME_SHARE:g}%): the parser found no caption",
-                    "value": missing,
-                }
-            )
-        out += _no_answer_warning(model, o, n_frames + o.frames_missing)
-        heavy = o.frames_heavy / n_frames if n_frames else 0.0
-        if heavy >= MIN_HEAVY_RECOVERY_SHARE:
-            out.append(
-                {
-                    "model": model,
-                    "kind": "heavy-recovery",
-                    "message": f"{o.frames_heavy} of {n_frames} present frame captions needed heavy recovery "
-                    f"({100 * heavy:.0f}% >= {100 * MIN_HEAVY_RECOVERY_SHARE:g}%): placed by position, not read "
-                    "from a frame label, so they may describe other frames",
-                    "value": heavy,
-                }
-            )
-        share, tokens = non_word_share(o.all_captions)
-        no_hit = sum(1 for h in o.final_hits if h == 0) / len(o.final_hits) if o.final_hits else 0.0
-        if tokens and share > MAX_NON_WORD_SHARE:
-            out.append(
-                {
-                    "model": model,
-                    "kind": "gibberish",
-                    "message": f"gibberish: {100 * share:.0f}% of {tokens} caption tokens are neither words nor "
-                    f"numbers (limit {100 * MAX_NON_WORD_SHARE:g}%)",
-                    "value": share,
-                }
-            )
-        if no_hit > MAX_NO_HIT_FINAL_SHARE:
-            numbers = number_share(o.all_captions)
-            out.append(
-                {
-                    "model": model,
-                    "kind": "off-task",
-                    "message": f"off-task: {100 * no_hit:.0f}% of final captions name nothing in the task lexicon "
-                    f"(limit {100 * MAX_NO_HIT_FINAL_SHARE:g}%); {100 * numbers:.0f}% of caption tokens are numbers",
-                    "value": no_hit,
-                    "number_share": numbers,
-                }
-            )
-        g = group_edge_excess(o.cells, group_size)
-        if g["ratio"] is not None and g["ratio"] >= GROUP_EDGE_RATIO and g["p_value"] < GROUP_EDGE_P:
-            out.append(
-                {
-                    "model": model,
-                    "kind": "group-edges",
-                    "message": f"segmentation follows the frame groups: {g['on_edges']} of {g['points']} points "
-                    f"fall on the edges of the k = {group_size} groups, {g['ratio']:.1f}x the "
-                    f"{g['expected']:.1f} expected by chance (binomial p = {g['p_value']:.1g})",
-                    "value": g["ratio"],
-                    **{k: v for k, v in g.items() if k != "ratio"},
+                    "claim": c.id,
+                    "description": c.description,
+                    "all_of": list(c.all_of),
+                    "verdict": verdict,
+                    "p": max(ps) if None not in ps else None,  # the intersection-union test's p
+                    "parts": {v["hypothesis"]: v["verdict"] for v in parts},
+                    "because": "every hypothesis under it is supported"
+                    if not failing
+                    else "; ".join(f"{h} is {mine[h]['verdict']}" for h in failing),
+                    "alpha": claims.alpha,
                 }
             )
     return out
 
 
-def _no_answer_warning(model: str, o: ModelOutputs, n_frames: int) -> list[dict]:
-    """'no-answers': most frame captions are missing because the answers held none, with the classes counted."""
-    share = o.frames_missing_problem / n_frames if n_frames else 0.0
-    if share < MIN_NO_ANSWER_SHARE:
-        return []
-    counts = Counter(o.answer_problems)
-    classes = ", ".join(f"{name} {n}" for name, n in counts.most_common())
-    return [
-        {
-            "model": model,
-            "kind": "no-answers",
-            "message": f"{o.frames_missing_problem} of {n_frames} frame captions are missing because the server's "
-            f"answers held none ({100 * share:.0f}% >= {100 * MIN_NO_ANSWER_SHARE:g}%; requests: {classes}): "
-            "the model's conditions cannot be compared",
-            "value": share,
-            "answer_problems": dict(counts.most_common()),
-        }
-    ]
+def format_combined(c: Mapping) -> str:
+    """'state_content_helps_trajectory: not supported (trajectory_both_vs_shuffled is not supported)'."""
+    p = c.get("p")
+    ptxt = "" if p is None else f", p = {'<0.001' if p < 0.001 else f'{p:.3f}'}"
+    return f"{c['claim']}: {c['verdict']}{ptxt} ({c['because']})"
+
+
+def verdict_doc_lines(doc: Mapping) -> list[str]:
+    """What a score's verdicts say, one line each, most important first: the sanity warnings, the combined claims,
+    then the hypotheses under them (``score``, ``report`` and report.md print these)."""
+    out = [f"⚠ {w['model']}: {w['message']}" for w in doc.get("warnings", [])]
+    out += [f"{c['model']} — CLAIM {format_combined(c)}" for c in doc.get("combined", [])]
+    out += [f"{v['model']} — {format_verdict(v)}" for v in doc.get("verdicts", [])]
+    return out
 
 
 def format_verdict(v: Mapping) -> str:

@@ -14,7 +14,7 @@ import pytest
 
 from scoring_helpers import score_scripted_run
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest
-from vlmproprio.verdicts import MIN_NO_ANSWER_SHARE
+from vlmproprio.sanity import MIN_NO_ANSWER_SHARE
 
 FIXTURES = Path(__file__).resolve().parents[2] / "fixtures"
 EPISODES, CONDITIONS = ("door_00",), ("none", "both")

@@ -141,11 +141,13 @@ def test_markdown_tables_show_the_scores(run, page):
     assert row[p_cols.index("all correct")] == f"+100 pp [+100, +100] p=0.016 q={q}"
     # the primary hypothesis carries a star and its Holm-adjusted p
     assert row[p_cols.index("trajectory correct")].startswith("★ +100 pp [+100, +100] p=0.016 Holm p=")
-    # the verdicts come first: one line per primary hypothesis, before the run facts
+    # the verdicts come first: the combined claims, then one line per primary hypothesis, before the run facts
     lines = md.splitlines()
     assert lines[2] == "## Verdicts"
     verdict_lines = [x for x in lines[: lines.index("## Tables")] if x.startswith("- synthetic — ")]
-    assert len(verdict_lines) == len(scores.verdicts["verdicts"]) >= 3
+    claims = [x for x in verdict_lines if x.startswith("- synthetic — CLAIM ")]
+    assert len(claims) == len(scores.verdicts["combined"]) >= 2 and verdict_lines[: len(claims)] == claims
+    assert len(verdict_lines) - len(claims) == len(scores.verdicts["verdicts"]) >= 3
     assert "- synthetic — trajectory_both_vs_none: both > none on final_trajectory_correct (all): inconclusive" in md
     # how strong each control is: its states' correlation with the true ones, from meta.json
     controls = scores.meta["controls"]["both_shuffled"]["door"]

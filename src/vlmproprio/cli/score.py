@@ -73,10 +73,12 @@ def cmd_score(args: argparse.Namespace) -> int:
 
 def _print_verdicts(doc: dict) -> None:
     """The verdict on each primary hypothesis and every sanity warning, one line each."""
-    from vlmproprio.verdicts import format_verdict
+    from vlmproprio.verdicts import format_combined, format_verdict
 
     for w in doc.get("warnings", []):
         print(f"WARNING {w['model']}: {w['message']}")
+    for c in doc.get("combined", []):  # the questions first, then the hypotheses that answer them
+        print(f"claim {c['model']}: {format_combined(c)}")
     for v in doc.get("verdicts", []):
         print(f"verdict {v['model']}: {format_verdict(v)}")
 

@@ -17,6 +17,7 @@ from vlmproprio.evaluation.inputs import RunInputs
 from vlmproprio.evaluation.metrics import CellView, computed_columns
 from vlmproprio.parallel import map_groups
 from vlmproprio.parsing import HEAVY_CLASSES
+from vlmproprio.sanity import FinalCell, ModelOutputs, same_sentence
 from vlmproprio.scoring import (
     ITEMS,
     CaptionScore,
@@ -30,7 +31,6 @@ from vlmproprio.scoring import (
 )
 from vlmproprio.segmentation import CosineCache, SweepPoint, boundaries_at, cosine_trace, sweep
 from vlmproprio.transcripts import Transcript, cell_key, frames_missing_by_problem
-from vlmproprio.verdicts import ModelOutputs
 
 
 def _flag(b: bool) -> int:
@@ -199,7 +199,7 @@ def _computed(view: CellView) -> dict:
 
 
 def _add_outputs(
-    o: ModelOutputs, t: Transcript, ep: Episode, texts: list[str], statuses: list[str], c: _Captions
+    o: ModelOutputs, t: Transcript, ep: Episode, texts: list[str], statuses: list[str], c: _Captions, at: SweepPoint
 ) -> None:
     o.frames_missing += statuses.count("missing")
     o.frames_heavy += sum(
@@ -216,6 +216,16 @@ def _add_outputs(
     o.cell_distinct.append(len(set(present)) / len(ep.frames))
     o.all_captions.extend([*present, *c.scene_texts, c.final_text])
     o.final_hits.append(c.final.hits)
+    o.finals.append(
+        FinalCell(
+            task=ep.task,
+            condition=t.condition,
+            truth=str(ep.target_bin.index) if ep.target_bin is not None else "",
+            trajectory_correct=bool(c.final.item("trajectory").correct),
+            is_instruction=same_sentence(c.final_text, ep.instruction),
+            boundary_f1=at.prf[1].f1 if 1 in at.prf else None,
+        )
+    )
 
 
 def _audit(t: Transcript, exp: Expectation, c: _Captions) -> dict:
@@ -270,7 +280,7 @@ def _score_each(
             out.sweep_rows.append(
                 {"model": t.model, "episode_id": t.episode_id, "task": ep.task, "condition": t.condition} | sp
             )
-        _add_outputs(out.outputs.setdefault(t.model, ModelOutputs()), t, ep, texts, statuses, c)
+        _add_outputs(out.outputs.setdefault(t.model, ModelOutputs()), t, ep, texts, statuses, c, points[-1])
         out.audit[key] = _audit(t, exp, c)
         out.traces[key] = _trace(trace, statuses, ep, threshold)
         scored.append(out)

@@ -1,6 +1,7 @@
 """Chance baselines of segmentation: the same number of points at random (exact or seeded draws: a precomputed
-table shipped with the package, then a cache on disk), evenly spaced, the lift over random chance, and
-boundaries at the pipeline's frame-group edges."""
+table shipped with the package, then a cache on disk), evenly spaced at one phase and at every phase, the model's
+own points at every circular shift, boundaries at the pipeline's frame-group edges; the lift over random chance
+(``*_lift``) and over the best of these content-free baselines (``*_lift_cf``, ``CONTENT_FREE_RULE``)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import functools
 import json
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from vlmproprio.evaluation.cells import CellScores
@@ -19,7 +20,11 @@ from vlmproprio.segmentation import (
     CHANCE_METRICS,
     CHANCE_SEED,
     Truth,
+    chance_groups,
+    chance_own_period,
+    chance_periodic,
     chance_random,
+    chance_shifted,
     evenly_spaced,
     group_edges,
     score_points,
@@ -141,35 +146,82 @@ class ChanceTable:
         return sum(self._exact.values()) / len(self._exact) if self._exact else None
 
 
-def _chance_columns(prefix: str, row: dict, truth: Truth, chance: ChanceTable, even_of: dict) -> None:
+# the content-free baselines a lift is finally read against (CONTENT_FREE_RULE): the best of these per row
+CONTENT_FREE = ("chance", "periodic", "shift", "period", "groups")
+CONTENT_FREE_RULE = (
+    "the best (highest) of five baselines that read nothing, each with as many points as the model placed: at "
+    "random, evenly spaced at a random phase offset (the mean over every offset), the model's own points "
+    "circularly shifted by a random amount (the mean over every shift), a metronome at the points' own most "
+    "common gap at a random phase (where its count is within one of the model's at every phase), and on the "
+    "edges of the pipeline's frame groups (every edge first, the rest at random)"
+)
+
+
+@dataclass
+class _Shared:
+    """What many rows share: the evenly spaced and periodic baselines by (ground truth, count), the group edges'
+    scores by episode."""
+
+    group_size: int
+    even: dict = field(default_factory=dict)
+    periodic: dict = field(default_factory=dict)
+    groups: dict = field(default_factory=dict)  # the edges themselves, by episode (seg_groups_*)
+    group_chance: dict = field(default_factory=dict)  # as many points as the row's, favouring the edges
+
+    def of(self, table: dict, key, compute) -> dict[str, float]:
+        if key not in table:
+            table[key] = compute()
+        return table[key]
+
+
+def _chance_columns(
+    prefix: str, row: dict, points: Sequence[int], truth: Truth, chance: ChanceTable, shared: _Shared
+) -> None:
     k = row.get(f"{prefix}points")
     if k is None:
         return
-    rand = chance.random(truth, int(k))
-    key = (truth.labels, int(k))
-    if key not in even_of:  # many rows share a ground truth and a count
-        even_of[key] = score_points(evenly_spaced(truth.n_frames, int(k)), truth)
-    even = even_of[key]
+    k = int(k)
+    key = (truth.labels, k)
+    rand = chance.random(truth, k)
+    even = shared.of(shared.even, key, lambda: score_points(evenly_spaced(truth.n_frames, k), truth))
+    periodic = shared.of(shared.periodic, key, lambda: chance_periodic(truth, k))
+    shift = chance_shifted(points, truth)
+    period = chance_own_period(points, truth)
+    groups = shared.of(shared.group_chance, key, lambda: chance_groups(truth, k, shared.group_size))
     for m in CHANCE_METRICS:
+        score = row[f"{prefix}{m}"]
         row[f"{prefix}{m}_chance"] = rand[m]
-        row[f"{prefix}{m}_lift"] = row[f"{prefix}{m}"] - rand[m]
+        row[f"{prefix}{m}_lift"] = score - rand[m]
         row[f"{prefix}{m}_even"] = even[m]
+        row[f"{prefix}{m}_periodic"] = periodic[m]
+        row[f"{prefix}{m}_shift"] = shift[m]
+        row[f"{prefix}{m}_groups"] = groups[m]
+        row[f"{prefix}{m}_period"] = period[m] if period is not None else None
+        best = max(rand[m], periodic[m], shift[m], groups[m], *([period[m]] if period is not None else []))
+        row[f"{prefix}{m}_cf"] = best
+        row[f"{prefix}{m}_lift_cf"] = score - best
 
 
-def add_chance(rows: list[dict], truths: dict[str, Truth], chance: ChanceTable, group_size: int) -> None:
+def add_chance(
+    rows: list[dict], truths: dict[str, Truth], chance: ChanceTable, group_size: int, traces: dict[str, dict]
+) -> None:
     """Chance baselines and lifts for the fixed-threshold (``seg_``) and out-of-sample (``seg_loo_``) scores,
-    and the score of boundaries at the frame-group edges (``seg_groups_``)."""
-    groups: dict[str, dict[str, float]] = {}
-    even_of: dict[tuple[tuple[str, ...], int], dict[str, float]] = {}
+    and the score of boundaries at the frame-group edges (``seg_groups_``). ``traces`` holds each cell's points
+    (``predicted_boundaries`` at the fixed threshold, ``loo_boundaries`` out of sample), which the shifted
+    baseline moves."""
+    from vlmproprio.transcripts import cell_key
+
+    shared = _Shared(group_size)
     for r in rows:
         truth = truths[r["episode_id"]]
-        _chance_columns("seg_", r, truth, chance, even_of)
-        _chance_columns("seg_loo_", r, truth, chance, even_of)
-        if r["episode_id"] not in groups:
+        if r["episode_id"] not in shared.groups:
             edges = group_edges(truth.n_frames, group_size)
-            groups[r["episode_id"]] = {"points": float(len(edges))} | score_points(edges, truth)
-        for m, v in groups[r["episode_id"]].items():
+            shared.groups[r["episode_id"]] = {"points": float(len(edges))} | score_points(edges, truth)
+        for m, v in shared.groups[r["episode_id"]].items():
             r[f"seg_groups_{m}"] = v
+        tr = traces[cell_key(r["model"], r["episode_id"], r["condition"])]
+        _chance_columns("seg_", r, tr["predicted_boundaries"], truth, chance, shared)
+        _chance_columns("seg_loo_", r, tr.get("loo_boundaries", []), truth, chance, shared)
 
 
 @dataclass(frozen=True)
@@ -190,7 +242,7 @@ def add_segmentation_baselines(
     group_size = frame_group_size(inputs.manifest)
     truths = {e: truth_of(ep.frame_phases) for e, ep in inputs.episodes.items()}
     add_out_of_sample(cells.rows, cells.cell_sweeps, thresholds)
+    add_loo_boundaries(cells)  # first: the shifted baseline moves the out-of-sample points
     with ChanceTable(chance_dir) as chance:
-        add_chance(cells.rows, truths, chance, group_size)
-    add_loo_boundaries(cells)
+        add_chance(cells.rows, truths, chance, group_size, cells.traces)
     return Baselines(group_size, chance.exact_share(), chance.computed, chance.cached, chance.precomputed)

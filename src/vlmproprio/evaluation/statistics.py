@@ -9,8 +9,9 @@ from dataclasses import dataclass
 from vlmproprio.conditions import BASELINE, PAPER_CONDITIONS
 from vlmproprio.evaluation.definitions import PAIRED_METRICS, ScoreSettings
 from vlmproprio.evaluation.inputs import condition_order
+from vlmproprio.sanity import ModelOutputs, sanity_warnings
 from vlmproprio.stats import DEFAULT_N_BOOT, DEFAULT_N_PERM, DEFAULT_SEED, paired_difference
-from vlmproprio.verdicts import Claims, ModelOutputs, mark_families, sanity_warnings, verdicts
+from vlmproprio.verdicts import Claims, combined_verdicts, mark_families, verdicts
 
 # the final caption's rubric items, right (1) or not (0) per episode: their differences get exact bounds
 BINARY_METRICS = tuple(m for m in PAIRED_METRICS if m.endswith(("_correct", "_mentioned")))
@@ -85,9 +86,11 @@ def paired_statistics(
     paired = paired_table(rows, comps, n_boot=settings.n_boot, n_perm=settings.n_perm, seed=settings.seed)
     mark_families(paired, claims)
     models = sorted({r["model"] for r in rows})
+    hypotheses = verdicts(paired, claims, models)
     verdict_doc = {
         "claims": claims.to_dict(),
-        "verdicts": verdicts(paired, claims, models),
+        "combined": combined_verdicts(hypotheses, claims, models),
+        "verdicts": hypotheses,
         "warnings": sanity_warnings({m: outputs[m] for m in models}, group_size),
         "group_size": group_size,
     }

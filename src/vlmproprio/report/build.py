@@ -21,7 +21,13 @@ from vlmproprio.report.page import (
 )
 from vlmproprio.report.plots import Plot, save_figure, success_rates_figure, sweep_figure, trace_figure
 from vlmproprio.report.power_section import power_cache, power_outputs
-from vlmproprio.report.tables import headline_table, markdown_report, report_tables, verdict_table
+from vlmproprio.report.tables import (
+    combined_table,
+    headline_table,
+    markdown_report,
+    report_tables,
+    verdict_table,
+)
 from vlmproprio.transcripts import Transcript, read_transcripts
 
 REPORT_DIR = "report"
@@ -294,6 +300,7 @@ def write_report(
         markdown=MARKDOWN,
         legend=LEGEND,
         warnings=[f"{w['model']}: {w['message']}" for w in s.verdicts.get("warnings", [])],
+        combined=combined_table(s) if s.verdicts.get("combined") else None,
         verdicts=verdict_table(s) if s.verdicts.get("verdicts") else None,
     )
     index = out / INDEX

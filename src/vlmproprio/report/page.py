@@ -134,6 +134,7 @@ class PageContext:
     markdown: str = "report.md"
     legend: list[tuple[str, str, str]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)  # sanity warnings, shown first
+    combined: Table | None = None  # one row per model and combined claim, shown first
     verdicts: Table | None = None  # one row per model and primary hypothesis
 
 

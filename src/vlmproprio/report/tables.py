@@ -276,6 +276,29 @@ def judge_table(s: RunScores) -> Table | None:
     )
 
 
+def combined_table(s: RunScores) -> Table:
+    """One row per model and combined claim (the question a reader asks): its verdict and why."""
+    from vlmproprio.verdicts import COMBINED_RULE
+
+    rows, classes = [], []
+    for c in s.verdicts.get("combined", []):
+        rows.append(
+            [c["model"], c["description"], " and ".join(c["all_of"]), c["verdict"], c["because"], fmt_p(c.get("p"))]
+        )
+        classes.append(f"verdict-{c['verdict'].replace(' ', '-')}")
+    return Table(
+        title="Claims: does the state's content help?",
+        headers=["model", "claim", "hypotheses", "verdict", "because", "p"],
+        rows=rows,
+        align=["l", "l", "l", "l", "l", "r"],
+        note=f"A claim combines the hypotheses under it by {COMBINED_RULE}. Beating no state alone can be won by a "
+        "captioner that only notices that numbers are present; beating another episode's states as well needs their "
+        "content.",
+        anchor="claims",
+        row_classes=classes,
+    )
+
+
 def verdict_table(s: RunScores) -> Table:
     """One row per model and pre-registered primary hypothesis: the verdict, effect with 95 % CI, corrected p."""
     from vlmproprio.verdicts import BOUND_RULE, VERDICT_RULES
@@ -309,12 +332,10 @@ def verdict_table(s: RunScores) -> Table:
 
 
 def verdict_lines(s: RunScores) -> list[str]:
-    """The report's first lines: every sanity warning, then one line per model and primary hypothesis."""
-    from vlmproprio.verdicts import format_verdict
+    """The report's first lines: every sanity warning, the combined claims, then each primary hypothesis."""
+    from vlmproprio.verdicts import verdict_doc_lines
 
-    out = [f"⚠ {w['model']}: {w['message']}" for w in s.verdicts.get("warnings", [])]
-    out += [f"{v['model']} — {format_verdict(v)}" for v in s.verdicts.get("verdicts", [])]
-    return out
+    return verdict_doc_lines(s.verdicts)
 
 
 CORRELATION_DIMS = ("gripper", "x", "y", "z", "roll", "pitch", "yaw")
@@ -352,7 +373,7 @@ def controls_table(s: RunScores) -> Table:
 
 def parsing_table(s: RunScores) -> Table | None:
     """Per model: how its answers were parsed (meta.json "parsing"; None for scores made before it was kept)."""
-    from vlmproprio.verdicts import MIN_HEAVY_RECOVERY_SHARE
+    from vlmproprio.sanity import MIN_HEAVY_RECOVERY_SHARE
 
     parsing = s.meta.get("parsing")
     if not isinstance(parsing, dict) or not isinstance(parsing.get("models"), dict):
