@@ -68,6 +68,15 @@ def run_transcript_files(run_dir: Path, manifest: dict) -> list[Path]:
             "`vlmproprio run --model MODEL --out RUN_DIR` command again (answers already made are cached)"
         )
     extra = sorted(set(on_disk) - set(expected))
+    running = [s for s in manifest.get("running_models", []) if isinstance(s, str)]
+    unfinished = [p for p in extra if p.parent.name in running]
+    if unfinished:  # a run of another model into this folder, still going or stopped: not "another run"
+        slug = unfinished[0].parent.name
+        raise ScoreRunError(
+            f"{run_dir}: model {slug} is still being run into this folder, or its run was stopped (run.json lists "
+            f"it under running_models; {len(unfinished)} of its transcripts are there); wait for that run to "
+            f"finish, or finish it by running the same `vlmproprio run --model MODEL --out RUN_DIR` command again"
+        )
     if extra:
         raise ScoreRunError(
             f"{extra[0]}: not part of the run recorded in {run_dir / 'run.json'} ({len(extra)} such transcript(s), "
