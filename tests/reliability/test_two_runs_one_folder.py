@@ -89,3 +89,20 @@ def test_two_runs_of_other_episodes_into_one_folder_at_once_do_not_both_write(tm
     assert [m["name"] for m in run["models"]] == [model]
     assert sorted(p.parent.name for p in (out / "transcripts").glob("*/*.json")) == [model, model]
     figures("two runs into one folder at once", attempts=1, mixed_configurations=0)
+
+
+def test_score_names_a_model_still_being_run_into_the_folder(tmp_path):
+    """The transcripts of a model whose run is going on (or was stopped) are named as that, not as strays."""
+    fixtures = fixture_subset(tmp_path / "fixtures", ["door_00"])
+    out, cache = tmp_path / "run", {"VLMPROPRIO_CACHE": str(tmp_path / "cache")}
+    args = ["run", "--model", "reference", *COMMON, "--fixtures", fixtures, "--out", out]
+    assert cli_in_process(args, env=cache).returncode == 0
+    doc = json.loads((out / "run.json").read_text())  # as a run of reference-state writes it while it runs
+    (out / "run.json").write_text(json.dumps({**doc, "status": "running", "running_models": ["reference-state"]}))
+    (out / "transcripts" / "reference-state").mkdir()
+    for p in (out / "transcripts" / "reference").glob("*.json"):
+        (out / "transcripts" / "reference-state" / p.name).write_bytes(p.read_bytes())
+    proc = cli_in_process(["score", out, "--no-progress"], env=cache)
+    assert proc.returncode == 2
+    assert "model reference-state is still being run into this folder" in proc.stderr, proc.stderr
+    assert "left by another run" not in proc.stderr
