@@ -35,7 +35,6 @@ from vlmproprio.cassettes import (
     write_cassette,
 )
 from vlmproprio.chat import Answer, ChatRequest
-from vlmproprio.episodes import register_fixture_file
 from vlmproprio.errors import UsageError, VlmproprioError
 from vlmproprio.models import ModelRef, resolve_model
 from vlmproprio.options import ANSWER_MODES
@@ -205,8 +204,8 @@ def open_answerer(
         answerer = Answerer(backend, mode=mode, cache=cache, model=ref.slug)
         yield answerer
         if mode == "record" and answerer.used:
+            # registered in the fixture manifest in the same step (cassettes.write_cassette)
             answerer.cassette = answerer.export_cassette(ref.cassette(settings.cassette_dir), allow_empty=allow_empty)
-            register_fixture_file(answerer.cassette)
     finally:
         backend.close()
         if cache is not None:

@@ -30,8 +30,9 @@ from vlmproprio.cache import (
     key_identity,
 )
 from vlmproprio.chat import ANSWER_PROBLEMS, RequestTag, answer_problem
+from vlmproprio.episodes.manifest import write_fixture_file
 from vlmproprio.errors import VlmproprioError
-from vlmproprio.io import atomic_write_text, loads_json
+from vlmproprio.io import loads_json
 from vlmproprio.secrets import scrub, scrub_obj
 
 CASSETTE_VERSION = 1
@@ -131,6 +132,7 @@ def write_cassette(
     path: Path | str, model: str, identity: dict, entries: Iterable[CacheEntry], *, merge: bool = True
 ) -> Path:
     """Write (atomically) a cassette with ``entries``; with ``merge``, keep the answers already in ``path``.
+    In a fixture set's ``responses/``, its manifest entry is written with it (episodes.write_fixture_file).
 
     Merging into a cassette recorded from another identity is refused: one file, one model identity.
     """
@@ -166,7 +168,8 @@ def write_cassette(
             merged[e.key] = e  # an unchanged answer keeps its old line (and latency): re-recording diffs stay small
     lines = [canonical_json(cassette_header(model, ident))]
     lines += [canonical_json(merged[k].cassette_record()) for k in sorted(merged)]
-    atomic_write_text(path, "\n".join(lines) + "\n")
+    # with its manifest entry when it lies in a fixture set: a full disk leaves both as they were
+    write_fixture_file(path, scrub("\n".join(lines) + "\n").encode("utf-8"))
     return path
 
 

@@ -2,6 +2,7 @@
 
 * ``atomic_write_bytes`` / ``atomic_write_text``: a temp file in the same folder, fsync, rename, so a reader
   never sees half a file; texts pass the secret scrubber first (``vlmproprio.secrets``).
+* ``atomic_write_together``: files that must change together, all written before any is renamed into place.
 * ``writing(path)``: turns an OSError (read-only folder, no permission, disk full) or an SQLite write error
   ("database or disk is full", "attempt to write a readonly database") into one ``WriteError`` line naming
   the path and the cause. Nothing half-written stays behind: the temp file is removed.
@@ -109,6 +110,35 @@ def atomic_write_bytes(path: Path | str, data: bytes) -> str:
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
     return hashlib.sha256(data).hexdigest()
+
+
+def atomic_write_together(files: Mapping[Path, bytes]) -> dict[Path, str]:
+    """Write several files that must change together (a cassette and the manifest entry that blesses it):
+    every one goes to a temp file beside its target first (fsynced), and only once all are written are they
+    renamed over their targets. A failure while writing (a full disk) is a WriteError naming the file and
+    leaves every target as it was and no temp file behind; path -> sha256 of the bytes written.
+
+    The renames are not one atomic step: a kill between two of them (microseconds, after every byte is on
+    disk) can still leave the first target new and the next old."""
+    temps: dict[Path, str] = {}
+    try:
+        for path, data in files.items():
+            with writing(path):
+                path.parent.mkdir(parents=True, exist_ok=True)
+                fd, temps[path] = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+                with os.fdopen(fd, "wb") as f:
+                    f.write(data)
+                    f.flush()
+                    os.fsync(f.fileno())
+                os.chmod(temps[path], 0o644)
+        for path in list(temps):
+            with writing(path):
+                os.replace(temps[path], path)
+            del temps[path]
+    finally:
+        for tmp in temps.values():
+            Path(tmp).unlink(missing_ok=True)
+    return {path: hashlib.sha256(data).hexdigest() for path, data in files.items()}
 
 
 def atomic_write_text(path: Path | str, text: str) -> str:

@@ -68,6 +68,15 @@ def run_transcript_files(run_dir: Path, manifest: dict) -> list[Path]:
             "`vlmproprio run --model MODEL --out RUN_DIR` command again (answers already made are cached)"
         )
     extra = sorted(set(on_disk) - set(expected))
+    running = [s for s in manifest.get("running_models", []) if isinstance(s, str)]
+    unfinished = [p for p in extra if p.parent.name in running]
+    if unfinished:  # a run of another model into this folder, still going or stopped: not "another run"
+        slug = unfinished[0].parent.name
+        raise ScoreRunError(
+            f"{run_dir}: model {slug} is still being run into this folder, or its run was stopped (run.json lists "
+            f"it under running_models; {len(unfinished)} of its transcripts are there); wait for that run to "
+            f"finish, or finish it by running the same `vlmproprio run --model MODEL --out RUN_DIR` command again"
+        )
     if extra:
         raise ScoreRunError(
             f"{extra[0]}: not part of the run recorded in {run_dir / 'run.json'} ({len(extra)} such transcript(s), "
@@ -119,10 +128,76 @@ def transcripts_digest(run_dir: Path, files: Sequence[Path], documents: Sequence
     return json_digest(said)
 
 
-def check_scores(run_dir: str | Path, names: Sequence[str] = ()) -> dict:
+def ground_truth_digest(episode_ids: Sequence[str], hashes: dict[str, str]) -> str:
+    """The stamp's digest of the episodes' ground truth: the sha256 of each ``episodes/<id>/episode.json``
+    (``hashes``: fixture path -> sha256, the manifest's when scored, the files' own when checked)."""
+    return json_digest({e: hashes.get(f"episodes/{e}/episode.json") for e in episode_ids})
+
+
+def _episode_ids(documents: Sequence[dict]) -> list[str]:
+    return sorted({d["episode_id"] for d in documents if isinstance(d, dict) and isinstance(d.get("episode_id"), str)})
+
+
+def _check_ground_truth(run_dir: Path, manifest: dict, fixtures, documents: Sequence[dict], recorded) -> None:
+    """The fixtures (``fixtures``, else run.json's) hold the ground truth the scores were computed from: a
+    changed episode.json, or --fixtures naming another fixture set, makes the scores stale. Not checked when the
+    scores were made without a manifest, or when run.json's fixture folder is gone and none is given (the
+    report then shows no frames)."""
+    if recorded is None or recorded == json_digest({}):
+        return
+    episode_ids = _episode_ids(documents)
+    try:
+        root = resolve_fixtures(run_dir, manifest, fixtures)
+    except ScoreRunError:
+        if fixtures is not None:
+            raise
+        return
+    hashes = {}
+    for e in episode_ids:
+        path = root / "episodes" / e / "episode.json"
+        if path.is_file():
+            hashes[f"episodes/{e}/episode.json"] = sha256_file(path)
+    if ground_truth_digest(episode_ids, hashes) != recorded:
+        given = f" --fixtures {fixtures}" if fixtures is not None else ""
+        raise StaleScoresError(
+            f"{run_dir / 'scores'}: scores are out of date: the ground truth in {root} (episodes/*/episode.json) "
+            f"is not the one they were computed from (the fixtures changed, or are another fixture set); re-score "
+            f"the run with these fixtures: `vlmproprio score {run_dir}{given}`"
+        )
+
+
+def _check_files(out: Path, files: dict, names: Sequence[str], fix: str) -> None:
+    """Every score file ``names`` (default: every file of the generation) is the one written with the stamp,
+    and scores/ holds no file the stamp does not list (one from another run put there by hand)."""
+    for name in names or list(files):
+        path = out / name
+        if name not in files or not path.is_file() or sha256_file(path) != files[name]:
+            what = "missing" if name in files and not path.is_file() else "changed or mixed"
+            raise StaleScoresError(
+                f"{path}: scores are out of date: not the file of this generation of scores ({what}); {fix}"
+            )
+    unlisted = sorted(
+        p.name
+        for p in out.iterdir()
+        if p.is_file() and not p.name.startswith(".") and p.name not in files and p.name not in UNSTAMPED_FILES
+    )
+    if unlisted:
+        raise StaleScoresError(
+            f"{out / unlisted[0]}: scores are out of date: not a file of this generation of scores (from another "
+            f"run or an older score; {len(unlisted)} such file(s)); {fix}"
+        )
+
+
+# written with every generation but not listed in its stamp: the stamp itself, and the wall times, which differ
+# between repeated scores by nature
+UNSTAMPED_FILES = (STAMP_FILE, "timing.json")
+
+
+def check_scores(run_dir: str | Path, names: Sequence[str] = (), fixtures: str | Path | None = None) -> dict:
     """The stamp of RUN_DIR/scores/ after checking it still matches the run: the same transcripts, run
-    configuration and code version, and score files ``names`` (default: all) as they were written.
-    StaleScoresError, naming the command that fixes it, otherwise."""
+    configuration, ground truth (in ``fixtures``, default the fixture folder of run.json) and code version, and
+    score files ``names`` (default: every file of the generation) as they were written, with no other file
+    beside them. StaleScoresError, naming the command that fixes it, otherwise."""
     run_dir = Path(run_dir)
     out = run_dir / "scores"
     fix = f"re-score the run: `vlmproprio score {run_dir}`"
@@ -134,11 +209,19 @@ def check_scores(run_dir: str | Path, names: Sequence[str] = ()) -> dict:
     if not isinstance(stamp, dict) or not isinstance(stamp.get("inputs"), dict):
         raise StaleScoresError(f"{out / STAMP_FILE}: scores are out of date: not a score stamp; {fix}")
     recorded, files = stamp["inputs"], stamp.get("files", {})
+    if not isinstance(files, dict):
+        raise StaleScoresError(f"{out / STAMP_FILE}: scores are out of date: not a score stamp; {fix}")
     if recorded.get("code") != code_version():
         raise StaleScoresError(
             f"{out}: scores are out of date: scored by {recorded.get('code')}, this is {code_version()}; {fix}"
         )
     manifest = read_run_manifest(run_dir)
+    if not (run_dir / "run.json").is_file() and recorded.get("run_configuration") != json_digest(run_configuration({})):
+        raise StaleScoresError(
+            f"{run_dir / 'run.json'}: missing, though the scores in {out} were made from it (deleted or moved "
+            "since); the scores cannot be checked against their run without it: put it back, or run the models "
+            "again into this folder and re-score"
+        )
     try:
         current = run_transcript_files(run_dir, manifest)
     except ScoreRunError as exc:
@@ -147,12 +230,9 @@ def check_scores(run_dir: str | Path, names: Sequence[str] = ()) -> dict:
         raise StaleScoresError(
             f"{out}: scores are out of date: run.json records another configuration than the one scored; {fix}"
         )
-    if recorded.get("transcripts") != transcripts_digest(run_dir, current):
+    documents = [load_json(p, error=ScoreRunError) for p in current]
+    if recorded.get("transcripts") != transcripts_digest(run_dir, current, documents):
         raise StaleScoresError(f"{out}: scores are out of date: transcripts changed since the run was scored; {fix}")
-    for name in names or list(files):
-        path = out / name
-        if name not in files or not path.is_file() or sha256_file(path) != files[name]:
-            raise StaleScoresError(
-                f"{path}: scores are out of date: not the file of this generation of scores (changed or mixed); {fix}"
-            )
+    _check_ground_truth(run_dir, manifest, fixtures, documents, recorded.get("ground_truth"))
+    _check_files(out, files, names, fix)
     return stamp

@@ -12,12 +12,13 @@ model (run.json records the mode each model ran in).
 
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
 import json
 import os
 import platform
 import subprocess
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from importlib import metadata
 from pathlib import Path
@@ -171,35 +172,60 @@ def provenance() -> dict:
     return {"versions": package_versions(), "git_revision": git_revision(Path(__file__).parent)}
 
 
-def _write_run_file(
-    plan: RunPlan,
-    episodes: list[Episode],
-    runs: list[ModelRun],
-    status: str,
-    settings,
-    earlier: list[dict],
-    written_by: dict,
-) -> None:
-    """run.json; ``earlier``: the models a previous run put into this folder and this run does not redo;
+@contextlib.contextmanager
+def run_folder_lock(folder: Path) -> Iterator[None]:
+    """An exclusive lock on the run folder, held while run.json is read, merged and written: two runs of
+    different models into one folder at once each add their model instead of overwriting the other's. The lock
+    is on the folder itself (flock on its descriptor), so no lock file is left in it; where the OS has no flock
+    (Windows), runs into one folder must not overlap."""
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not on the platforms the suite runs on
+        yield
+        return
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # closing the descriptor releases the lock
+
+
+def _write_run_file(plan: RunPlan, episodes: list[Episode], runs: list[ModelRun], settings, written_by: dict) -> None:
+    """run.json, merged under the folder's lock with what is there now: the models that earlier runs, and
+    runs going on at the same time, put into this folder and this run does not redo stay listed. ``runs``: the
+    models this run has finished; the others of ``plan.models`` are listed under ``running_models`` until then
+    (and stay there if the run is stopped), and the status is complete once no model is running. Another run
+    that started meanwhile with another configuration is refused (check_run_folder), before this run writes.
     ``written_by``: ``provenance()``."""
-    redone = {r.slug for r in runs}
-    models = [m for m in earlier if m.get("slug") not in redone] + [_model_record(r) for r in runs]
-    doc = {
-        "run_version": RUN_VERSION,
-        "status": status,
-        "updated": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "mode": plan.mode,
-        "fixtures": str(plan.fixtures.resolve()),
-        "episodes": [e.episode_id for e in episodes],
-        "conditions": [c.name for c in plan.conditions],
-        "models": models,
-        "backend_settings": _backend_settings_record(settings),
-        "calls_per_episode_condition": {
-            e.episode_id: calls_per_episode(len(e.frames), plan.pipeline.k) for e in episodes
-        },
-        **written_by,
-    }
-    atomic_write_text(plan.out / RUN_FILE, json.dumps(doc, indent=1) + "\n")
+    path = plan.out / RUN_FILE
+    with run_folder_lock(plan.out):
+        current = read_run_file(plan.out) or {}
+        if current:
+            _check_configuration(plan, episodes, current, "another run changed it meanwhile: ")
+        done = {r.slug for r in runs}
+        planned = {m.slug for m in plan.models}
+        models = [m for m in current.get("models", []) if isinstance(m, dict) and m.get("slug") not in done]
+        models += [_model_record(r) for r in runs]
+        others = [s for s in current.get("running_models", []) if isinstance(s, str) and s not in planned]
+        running = sorted(set(others) | (planned - done))
+        doc = {
+            "run_version": RUN_VERSION,
+            "status": "running" if running else "complete",
+            "updated": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "mode": plan.mode,
+            "fixtures": str(plan.fixtures.resolve()),
+            "episodes": [e.episode_id for e in episodes],
+            "conditions": [c.name for c in plan.conditions],
+            "models": models,
+            **({"running_models": running} if running else {}),
+            "backend_settings": _backend_settings_record(settings),
+            "calls_per_episode_condition": {
+                e.episode_id: calls_per_episode(len(e.frames), plan.pipeline.k) for e in episodes
+            },
+            **written_by,
+        }
+        atomic_write_text(path, json.dumps(doc, indent=1) + "\n")
 
 
 MIN_EPISODES_PER_WORKER = 4  # a forked worker costs ~0.05 s; fewer episodes each are not worth one
@@ -301,42 +327,53 @@ def _differences(old: dict, new: dict) -> list[str]:
     return [f"{k} {old.get(k)!r} -> {new.get(k)!r}" for k in keys if old.get(k) != new.get(k)]
 
 
-def check_run_folder(plan: RunPlan, episodes: list[Episode]) -> list[dict]:
-    """Whether this run may write into ``plan.out``; returns the model records of an earlier run there.
-
-    A run folder records its configuration (run.json). Running into it again with the same fixtures, episodes,
-    conditions and per-model settings resumes or redoes it; another model with those settings is added to it.
-    Anything else is refused in one line: the folder would otherwise mix transcripts of two configurations."""
+def _check_configuration(plan: RunPlan, episodes: list[Episode], old: dict, why: str = "") -> None:
+    """Refuse, in one line starting ``why``, a run whose fixtures, episodes, conditions or per-model settings
+    differ from those of the run.json ``old`` of its folder."""
     out = Path(plan.out)
-    old = read_run_file(out)
     where = out / RUN_FILE
     fix = "choose another --out (nothing in " + str(out) + " is changed)"
-    if old is None:
-        if any((out / "transcripts").glob("*/*.json")):
-            raise UsageError(f"{out} holds transcripts but no {RUN_FILE} (their configuration is unknown); {fix}")
-        return []
     if old.get("fixtures") and Path(old["fixtures"]).resolve() != Path(plan.fixtures).resolve():
-        raise UsageError(f"{where} is a run on fixtures {old['fixtures']}, not {Path(plan.fixtures).resolve()}; {fix}")
+        raise UsageError(
+            f"{why}{where} is a run on fixtures {old['fixtures']}, not {Path(plan.fixtures).resolve()}; {fix}"
+        )
     want = {"episodes": [e.episode_id for e in episodes], "conditions": [c.name for c in plan.conditions]}
     for field_name, value in want.items():
         if field_name in old and old[field_name] != value:
             diff = _differences({"": old[field_name]}, {"": value})[0].strip()
-            raise UsageError(f"{where} is a run of other {field_name} ({diff}); {fix}")
-    earlier = [m for m in old.get("models", []) if isinstance(m, dict)]
-    by_slug = {m.get("slug"): m for m in earlier}
+            raise UsageError(f"{why}{where} is a run of other {field_name} ({diff}); {fix}")
+    by_slug = {m.get("slug"): m for m in old.get("models", []) if isinstance(m, dict)}
     for model in plan.models:
         m = by_slug.get(model.slug)
         if m is None:
             continue
         if m.get("name") != model.name:
             raise UsageError(
-                f"{where}: model {model.name!r} would share the folder transcripts/{model.slug} with model "
+                f"{why}{where}: model {model.name!r} would share the folder transcripts/{model.slug} with model "
                 f"{m.get('name')!r} already there; {fix}"
             )
         if isinstance(m.get("pipeline"), dict) and m["pipeline"] != plan.pipeline_for(model).to_dict():
             diff = "; ".join(_differences(m["pipeline"], plan.pipeline_for(model).to_dict()))
-            raise UsageError(f"{where}: model {model.name!r} ran there with other settings ({diff}); {fix}")
-    return earlier
+            raise UsageError(f"{why}{where}: model {model.name!r} ran there with other settings ({diff}); {fix}")
+
+
+def check_run_folder(plan: RunPlan, episodes: list[Episode]) -> None:
+    """Whether this run may write into ``plan.out``.
+
+    A run folder records its configuration (run.json). Running into it again with the same fixtures, episodes,
+    conditions and per-model settings resumes or redoes it; another model with those settings is added to it,
+    also by a run going on at the same time (run.json is merged under the folder's lock: _write_run_file).
+    Anything else is refused in one line: the folder would otherwise mix transcripts of two configurations."""
+    out = Path(plan.out)
+    old = read_run_file(out)
+    if old is None:
+        if any((out / "transcripts").glob("*/*.json")):
+            raise UsageError(
+                f"{out} holds transcripts but no {RUN_FILE} (their configuration is unknown); choose another "
+                f"--out (nothing in {out} is changed)"
+            )
+        return
+    _check_configuration(plan, episodes, old)
 
 
 def run(plan: RunPlan) -> list[ModelRun]:
@@ -362,7 +399,7 @@ def run(plan: RunPlan) -> list[ModelRun]:
                 f"unknown episode(s) {', '.join(missing)}{hint} in {plan.fixtures}; known: {', '.join(by_id)}"
             )
         episodes = [by_id[eid] for eid in plan.episode_ids]
-    earlier = check_run_folder(plan, episodes)
+    check_run_folder(plan, episodes)
     try:
         plan.out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:  # a file in the way, no permission: the user's --out, not a bug
@@ -371,11 +408,10 @@ def run(plan: RunPlan) -> list[ModelRun]:
         ) from exc
     runs: list[ModelRun] = []
     written_by = provenance()
-    _write_run_file(plan, episodes, runs, "running", settings, earlier, written_by)
+    _write_run_file(plan, episodes, runs, settings, written_by)
     # frames verified by an earlier run with this cache folder are not decoded again (episodes.pixel_ledger)
     with pixel_ledger(cache_dir / PIXEL_LEDGER_FILE):
         for model in plan.models:
             runs.append(run_model(model, plan, episodes, peers, settings))
-            _write_run_file(plan, episodes, runs, "running", settings, earlier, written_by)
-    _write_run_file(plan, episodes, runs, "complete", settings, earlier, written_by)
+            _write_run_file(plan, episodes, runs, settings, written_by)
     return runs

@@ -37,7 +37,7 @@ from vlmproprio.embeddings import (
     sidecar_section,
     write_sidecar,
 )
-from vlmproprio.episodes import load_episodes, register_fixture_file, sha256_file
+from vlmproprio.episodes import fixture_manifest_of, load_episodes, sha256_file
 from vlmproprio.errors import VlmproprioError
 from vlmproprio.evaluation import frame_texts
 from vlmproprio.models import ModelRef, resolve_model
@@ -137,7 +137,7 @@ def build_sidecar(
     cassette = ref.cassette(responses)
     source = {"model": ref.name, "cassette_sha256": sha256_file(cassette) if cassette.is_file() else None}
     write_sidecar(path, slug, sections.values(), source)
-    manifest = register_fixture_file(path)
+    manifest = fixture_manifest_of(path)  # written with the sidecar (write_sidecar)
     return SidecarBuild(path, len(section.digests), embedder.stats.computed, manifest)
 
 

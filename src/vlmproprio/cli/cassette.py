@@ -20,7 +20,7 @@ from vlmproprio.errors import VlmproprioError
 def cmd_cassette(args: argparse.Namespace) -> int:
     from vlmproprio.cache import ResponseCache
     from vlmproprio.cassettes import export_cassette, import_cassette
-    from vlmproprio.episodes import register_fixture_file
+    from vlmproprio.episodes import fixture_manifest_of
     from vlmproprio.models import resolve_model
 
     cache_dir = cache_root_of(args)  # the response cache is the cache folder's cache.db
@@ -33,7 +33,7 @@ def cmd_cassette(args: argparse.Namespace) -> int:
             path, n = export_cassette(
                 cache, model.slug, path, merge=not args.replace, allow_empty=args.allow_empty_answers
             )
-            manifest = register_fixture_file(path)
+            manifest = fixture_manifest_of(path)  # written with the cassette (cassettes.write_cassette)
             print(f"wrote {n} answers of {args.model} to {path}" + (f" (updated {manifest})" if manifest else ""))
             if not args.no_embed:
                 _embed_exported(args.model, path)

@@ -30,18 +30,18 @@ def score_and_report(run_dir: Path, fixtures: Path | None, cache: Path, *, progr
         bar.update()
         index = write_report(run_dir, fixtures=fixtures, cache_dir=cache)
         bar.update()
-    print_results(run_dir)
+    print_results(run_dir, fixtures)
     print(f"report: {index}")
     return 0
 
 
-def print_results(run_dir: Path) -> None:
+def print_results(run_dir: Path, fixtures: Path | None = None) -> None:
     """The scores on screen: per model the headline means per condition, then the warnings and verdicts."""
     from vlmproprio.report.data import load_run_scores
     from vlmproprio.report.tables import verdict_lines
     from vlmproprio.report.terminal import terminal_summary
 
-    s = load_run_scores(run_dir)
+    s = load_run_scores(run_dir, fixtures)
     print(terminal_summary(s), end="")
     for line in verdict_lines(s):
         print(line)
@@ -72,7 +72,7 @@ def cmd_report(args: argparse.Namespace) -> int:
             cache_dir=cache,
         )
         bar.update()
-    print_results(args.run_dir)
+    print_results(args.run_dir, args.fixtures)
     print(f"report: {index}")
     return 0
 

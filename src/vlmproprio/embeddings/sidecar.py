@@ -106,9 +106,9 @@ def _header_checksum(header: dict) -> str:
 
 
 def write_sidecar(path: str | Path, model: str, sections: Iterable[SidecarSection], source: dict | None = None) -> Path:
-    """Write (atomically) an .npz that ``np.load(path, allow_pickle=False)`` reads: a JSON header (a 0-d
+    """Write (atomically, with its fixture manifest entry: episodes.write_fixture_file) an .npz that ``np.load(path, allow_pickle=False)`` reads: a JSON header (a 0-d
     unicode array) and per encoder ``digests_<i>`` (<U64) and ``vectors_<i>`` (<f4), sections in key order."""
-    from vlmproprio.episodes import atomic_write_bytes
+    from vlmproprio.episodes import write_fixture_file
 
     secs = sorted(sections, key=lambda s: s.key)
     header = {
@@ -133,7 +133,8 @@ def write_sidecar(path: str | Path, model: str, sections: Iterable[SidecarSectio
             info.compress_type = zipfile.ZIP_DEFLATED
             info.external_attr = 0o644 << 16
             zf.writestr(info, data.getvalue(), compresslevel=6)
-    atomic_write_bytes(Path(path), buf.getvalue())
+    # with its manifest entry when it lies in a fixture set: a full disk leaves both as they were
+    write_fixture_file(Path(path), buf.getvalue())
     return Path(path)
 
 

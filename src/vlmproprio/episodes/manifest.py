@@ -3,6 +3,7 @@ changed, missing or extra file is an error that names it."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 from collections.abc import Iterable
@@ -10,7 +11,14 @@ from pathlib import Path
 
 from vlmproprio.digests import file_signature, settled
 from vlmproprio.episodes.types import FORMAT_VERSION, MANIFEST_NAME, EpisodeError
-from vlmproprio.io import JSONLoadError, atomic_write_text, load_json, sha256_file
+from vlmproprio.io import (
+    JSONLoadError,
+    atomic_write_bytes,
+    atomic_write_text,
+    atomic_write_together,
+    load_json,
+    sha256_file,
+)
 
 
 def _fixture_files(root: Path) -> list[str]:
@@ -33,6 +41,11 @@ def write_manifest(root: Path) -> Path:
     return path
 
 
+def _manifest_text(files: dict[str, str]) -> str:
+    doc = {"format_version": FORMAT_VERSION, "files": dict(sorted(files.items()))}
+    return json.dumps(doc, indent=1, sort_keys=True) + "\n"
+
+
 def update_manifest(root: Path, rel_paths: Iterable[str]) -> Path:
     """Re-hash only the named files (dropping those that no longer exist).
 
@@ -47,19 +60,32 @@ def update_manifest(root: Path, rel_paths: Iterable[str]) -> Path:
         else:
             files.pop(rel, None)
     path = root / MANIFEST_NAME
-    doc = {"format_version": FORMAT_VERSION, "files": dict(sorted(files.items()))}
-    atomic_write_text(path, json.dumps(doc, indent=1, sort_keys=True) + "\n")
+    atomic_write_text(path, _manifest_text(files))
     return path
 
 
-def register_fixture_file(path: Path) -> Path | None:
-    """Update the manifest entry of a file written into a fixture set's sub-folder (a cassette in
-    ``<fixtures>/responses/``); returns the manifest, or None when the folder above holds no manifest."""
-    path = Path(path).resolve()
-    root = path.parent.parent
-    if not (root / MANIFEST_NAME).is_file():
+def fixture_manifest_of(path: Path) -> Path | None:
+    """The manifest of the fixture set whose sub-folder holds ``path`` (``<fixtures>/responses/x`` ->
+    ``<fixtures>/manifest.json``), None when the folder above holds none."""
+    manifest = Path(path).resolve().parent.parent / MANIFEST_NAME
+    return manifest if manifest.is_file() else None
+
+
+def write_fixture_file(path: Path, data: bytes) -> Path | None:
+    """Write ``data`` to ``path`` and, when ``path`` lies in a fixture set's sub-folder (a cassette or sidecar
+    in ``<fixtures>/responses/``), its new sha256 into the manifest, together (io.atomic_write_together): a
+    failure such as a full disk changes neither, so ``verify`` never finds one without the other. Returns the
+    manifest updated, or None. Only this file's entry changes: unrelated edits elsewhere stay unblessed."""
+    path = Path(path)
+    manifest = fixture_manifest_of(path)
+    if manifest is None:
+        atomic_write_bytes(path, data)
         return None
-    return update_manifest(root, [path.relative_to(root).as_posix()])
+    root = manifest.parent
+    files = dict(read_manifest(root))
+    files[path.resolve().relative_to(root).as_posix()] = hashlib.sha256(data).hexdigest()
+    atomic_write_together({path: data, manifest: _manifest_text(files).encode("utf-8")})
+    return manifest
 
 
 def check_fixture_file(path: Path) -> None:

@@ -11,7 +11,14 @@ from vlmproprio.evaluation.formats import dumps_csv, dumps_json
 from vlmproprio.evaluation.tables import ScoreTables
 from vlmproprio.io import WriteError, atomic_write_text, atomic_write_texts, writing
 from vlmproprio.parallel import map_groups
-from vlmproprio.run_folder import STAMP_FILE, code_version, json_digest, run_configuration, transcripts_digest
+from vlmproprio.run_folder import (
+    STAMP_FILE,
+    code_version,
+    ground_truth_digest,
+    json_digest,
+    run_configuration,
+    transcripts_digest,
+)
 
 # file name -> (table, format), in the order the files are written
 SCORE_FILES: dict[str, tuple[str, str]] = {
@@ -88,14 +95,13 @@ def score_inputs(
     from vlmproprio.episodes import read_manifest
 
     try:
-        fixture_files = read_manifest(fixtures)
-        truth = {e: fixture_files.get(f"episodes/{e}/episode.json") for e in episode_ids}
-    except VlmproprioError:  # scored with verify=False on fixtures without a manifest
-        truth = {}
+        truth = ground_truth_digest(episode_ids, read_manifest(fixtures))
+    except VlmproprioError:  # scored with verify=False on fixtures without a manifest: nothing to check later
+        truth = json_digest({})
     parts = {
         "transcripts": transcripts_digest(run_dir, files, documents),
         "run_configuration": json_digest(run_configuration(manifest)),
-        "ground_truth": json_digest(truth),
+        "ground_truth": truth,
         "settings": json_digest(settings),
         "lexicons": json_digest(lexicons),
         "code": code_version(),

@@ -242,7 +242,7 @@ def write_report(
     (``fixtures``, default the one named in run.json); without it the page says so and shows no frames.
     ``cache_dir``: the cache root whose ``power/`` keeps power analyses (default: vlmproprio.locations)."""
     require_report_packages()
-    s = load_run_scores(run_dir)
+    s = load_run_scores(run_dir, fixtures)  # scores computed from the ground truth in these fixtures
     out = Path(out) if out is not None else Path(run_dir) / REPORT_DIR
     root = fixtures if fixtures is not None else s.manifest.get("fixtures")
     if root and Path(root).is_dir():

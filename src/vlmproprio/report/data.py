@@ -108,13 +108,15 @@ def _read_json(path: Path, kind: type):
     return data
 
 
-def _check_generation(run_dir: Path, d: Path) -> None:
+def _check_generation(run_dir: Path, d: Path, fixtures: str | Path | None) -> None:
     if (d / "meta.json").is_file():  # else the missing-file error below says to score the run
-        from vlmproprio.run_folder import StaleScoresError, check_scores
+        from vlmproprio.run_folder import ScoreRunError, check_scores
 
-        try:  # one generation, stamped with what it was computed from: refuse stale or mixed scores
-            check_scores(run_dir, [f"{name}.json" for name in SCORE_FILES])
-        except StaleScoresError as exc:
+        # one generation, stamped with what it was computed from: refuse stale or mixed scores. Every file of it
+        # (judge.json and frames.csv too, which sit beside the tables read here), and no file from elsewhere.
+        try:
+            check_scores(run_dir, fixtures=fixtures)
+        except ScoreRunError as exc:  # stale scores, or a --fixtures folder that is not there
             raise ReportError(str(exc)) from None
 
 
@@ -131,13 +133,14 @@ def _check_rows(run_dir: Path, d: Path, rows: list) -> None:
         raise ReportError(f"{d}: scores are out of date: {what}; re-score with `vlmproprio score {run_dir}`")
 
 
-def load_run_scores(run_dir: str | Path) -> RunScores:
-    """Read RUN_DIR/run.json (optional) and RUN_DIR/scores/*.json; checks they describe the same transcripts."""
+def load_run_scores(run_dir: str | Path, fixtures: str | Path | None = None) -> RunScores:
+    """Read RUN_DIR/run.json (optional) and RUN_DIR/scores/*.json; checks they describe the same transcripts,
+    and the ground truth in ``fixtures`` (default: run.json's fixture folder, when it is there)."""
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise ReportError(f"{run_dir}: run directory not found")
     d = run_dir / SCORES_DIR
-    _check_generation(run_dir, d)
+    _check_generation(run_dir, d, fixtures)
     kinds = {"audit": dict, "traces": dict, "meta": dict, "verdicts": dict}
     # the score files are RunScores' fields of the same names
     tables = {name: _read_json(d / f"{name}.json", kinds.get(name, list)) for name in SCORE_FILES}
