@@ -25,6 +25,13 @@ cut to nothing, the reasoning model's fate at a small token limit),
 (the answer in the reasoning field, content null) and ``other_model`` (the
 answer, from a model with another name).
 
+Hostile bodies, each a 200 the SDK would read to the end: ``trickle`` (the headers at once, then the body one
+byte every ``trickle_s`` seconds), ``trickle_headers`` (the whole response so, from the status line on),
+``gzip_bomb`` and ``deflate_bomb`` (a small compressed body that inflates to a completion of ``bomb_bytes``),
+``huge`` (``bomb_bytes`` of completion sent as they are, chunked, with no Content-Length), ``non_utf8`` (a
+completion with a Latin-1 byte in it) and ``deep_json`` (JSON nested ``deep_levels`` deep). Each trickle the
+server sent, and whether the client read it to the end, is kept in :attr:`FakeOpenAIServer.trickles`.
+
 Reasoning: ``reasoning=`` a function of the request body returns the text a
 reasoning server (vLLM, SGLang with a reasoning parser) puts beside the
 answer, in ``reasoning_field`` (``reasoning_content``, vLLM's newer
@@ -41,6 +48,7 @@ import socket
 import struct
 import threading
 import time
+import zlib
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -61,6 +69,13 @@ FaultKind = Literal[
     "empty_choice",
     "reasoning_only",
     "other_model",
+    "trickle",
+    "trickle_headers",
+    "gzip_bomb",
+    "deflate_bomb",
+    "huge",
+    "non_utf8",
+    "deep_json",
 ]
 # completions without a caption in them: valid JSON the SDK accepts, each as the servers that send it shape it
 NO_CAPTION_KINDS: tuple[str, ...] = (
@@ -72,7 +87,26 @@ NO_CAPTION_KINDS: tuple[str, ...] = (
     "reasoning_only",
     "other_model",
 )
-FAULT_KINDS: tuple[str, ...] = ("429", "500", "hang", "reset", "malformed", "empty", *NO_CAPTION_KINDS)
+# 200s whose body must not be read to the end or used: too slow, too big once inflated, not UTF-8, too deep
+HOSTILE_BODY_KINDS: tuple[str, ...] = (
+    "trickle",
+    "trickle_headers",
+    "gzip_bomb",
+    "deflate_bomb",
+    "huge",
+    "non_utf8",
+    "deep_json",
+)
+FAULT_KINDS: tuple[str, ...] = (
+    "429",
+    "500",
+    "hang",
+    "reset",
+    "malformed",
+    "empty",
+    *NO_CAPTION_KINDS,
+    *HOSTILE_BODY_KINDS,
+)
 OTHER_MODEL = "some-other-model"
 
 
@@ -90,6 +124,16 @@ class RecordedRequest:
     body: dict | None
     fault: str | None  # the fault served to this request, None when answered normally
     received_at: float
+
+
+@dataclass(frozen=True)
+class Trickle:
+    """One trickled response: bytes sent of all it had, and whether the client read it all (else it hung up)."""
+
+    kind: str
+    sent: int
+    total: int
+    finished: bool
 
 
 def request_digest(body: dict) -> str:
@@ -127,6 +171,9 @@ class FakeOpenAIServer:
         reasoning_field: str = "reasoning_content",
         host: str = "127.0.0.1",
         port: int = 0,
+        trickle_s: float = 0.05,
+        bomb_bytes: int = 200 * 1024 * 1024,
+        deep_levels: int = 100_000,
     ) -> None:
         if reasoning_field not in ("reasoning_content", "reasoning", "both"):
             raise ValueError(f"reasoning_field must be reasoning_content, reasoning or both, not {reasoning_field!r}")
@@ -135,6 +182,10 @@ class FakeOpenAIServer:
         self.responder: Responder = responder or expected_answer
         self.reasoning = reasoning
         self.reasoning_field = reasoning_field
+        self.trickle_s = trickle_s  # seconds between the bytes of a trickle
+        self.bomb_bytes = bomb_bytes  # what a bomb or a huge body holds, once inflated
+        self.deep_levels = deep_levels  # nesting of deep_json
+        self.trickles: list[Trickle] = []
         self._faults: deque[Fault] = deque()
         self._requests: list[RecordedRequest] = []
         self._lock = threading.Lock()
@@ -213,6 +264,10 @@ class FakeOpenAIServer:
     def _record(self, rec: RecordedRequest) -> None:
         with self._lock:
             self._requests.append(rec)
+
+    def _trickled(self, trickle: Trickle) -> None:
+        with self._lock:
+            self.trickles.append(trickle)
 
 
 def _completion(body: dict, text: str) -> dict:
@@ -370,6 +425,82 @@ class _Handler(BaseHTTPRequestHandler):
         elif fault.kind == "hang":
             self.fake._closing.wait(self.fake.hang_s)
             self.close_connection = True
+        else:
+            self._serve_hostile_body(fault.kind, body)
+
+    def _serve_hostile_body(self, kind: str, body: dict) -> None:
+        doc = _completion(body, self.fake.responder(body))
+        if kind in ("trickle", "trickle_headers"):
+            data = json.dumps(doc).encode("utf-8")
+            head = f"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: {len(data)}\r\n\r\n"
+            self._trickle(kind, head.encode("ascii"), data)
+        elif kind in ("gzip_bomb", "deflate_bomb"):
+            encoding = kind.split("_")[0]
+            self._send_bytes(200, _bomb(doc, self.fake.bomb_bytes, encoding), {"Content-Encoding": encoding})
+        elif kind == "huge":
+            self._send_chunked(_padded(doc, self.fake.bomb_bytes))
+        elif kind == "non_utf8":
+            doc["choices"][0]["message"]["content"] += " caf\u00e9"
+            latin1 = json.dumps(doc, ensure_ascii=False).encode("utf-8").replace("\u00e9".encode(), b"\xe9")
+            self._send_bytes(200, latin1)
+        elif kind == "deep_json":
+            n = self.fake.deep_levels
+            self._send_bytes(200, b'{"id": "chatcmpl-deep", "choices": ' + b"[" * n + b"]" * n + b"}")
+
+    def _trickle(self, kind: str, head: bytes, data: bytes) -> None:
+        """``head`` at once and ``data`` a byte at a time (for trickle_headers, all of it a byte at a time)."""
+        self.close_connection = True
+        slow = head + data if kind == "trickle_headers" else data
+        sent = 0
+        try:
+            if kind == "trickle":
+                self.wfile.write(head)
+                self.wfile.flush()
+            for i in range(len(slow)):
+                if self.fake._closing.wait(self.fake.trickle_s):
+                    break
+                self.wfile.write(slow[i : i + 1])
+                self.wfile.flush()
+                sent = i + 1
+        except OSError:  # the client hung up: what it did is in the record
+            pass
+        self.fake._trickled(Trickle(kind, sent, len(slow), sent == len(slow)))
+
+    def _send_chunked(self, pieces) -> None:
+        self.close_connection = True
+        self.send_response(200)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Transfer-Encoding", "chunked")
+        self.end_headers()
+        try:
+            for piece in pieces:
+                self.wfile.write(f"{len(piece):x}\r\n".encode("ascii") + piece + b"\r\n")
+            self.wfile.write(b"0\r\n\r\n")
+        except OSError:  # the client stopped reading
+            pass
+
+
+_PAD = "\u0000PAD\u0000"
+
+
+def _padded(doc: dict, size: int, piece: int = 1024 * 1024):
+    """``doc`` as JSON bytes of about ``size``, its answer padded with spaces (the answer, once stripped, is
+    still the one asked for), in pieces of ``piece`` bytes: never all of it in memory."""
+    doc["choices"][0]["message"]["content"] += _PAD
+    before, after = (p.encode("utf-8") for p in json.dumps(doc).split(json.dumps(_PAD)[1:-1]))
+    yield before
+    left = max(0, size - len(before) - len(after))
+    while left > 0:
+        n = min(piece, left)
+        yield b" " * n
+        left -= n
+    yield after
+
+
+def _bomb(doc: dict, size: int, encoding: str) -> bytes:
+    """A gzip or deflate (zlib) body that inflates to a ``size``-byte completion: ~1/1000 of it."""
+    z = zlib.compressobj(9, zlib.DEFLATED, zlib.MAX_WBITS | 16 if encoding == "gzip" else zlib.MAX_WBITS)
+    return b"".join(z.compress(p) for p in _padded(doc, size)) + z.flush()
 
 
 def _no_caption(kind: str, doc: dict) -> dict:
