@@ -42,6 +42,7 @@ logged or written to disk.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import socket
@@ -324,6 +325,12 @@ class _Handler(BaseHTTPRequestHandler):
         # delayed ACK (~40 ms per request on Linux). Real servers (uvicorn, vLLM) turn it off too.
         self.connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
+    def handle(self) -> None:
+        try:
+            super().handle()
+        except (ConnectionResetError, BrokenPipeError):  # a client that hung up (e.g. on a bomb): not an error here
+            self.close_connection = True
+
     def log_message(self, format: str, *args) -> None:
         """Silent: request lines may carry anything, and tests want clean output."""
 
@@ -339,7 +346,10 @@ class _Handler(BaseHTTPRequestHandler):
         for k, v in (headers or {}).items():
             self.send_header(k, v)
         self.end_headers()
-        self.wfile.write(data)
+        try:
+            self.wfile.write(data)
+        except OSError:  # the client hung up (a bomb it stopped reading): nothing to print, as a real server
+            self.close_connection = True
 
     def _send_error(self, status: int, message: str, kind: str, headers: dict[str, str] | None = None) -> None:
         self._send_json(status, {"error": {"message": message, "type": kind}}, headers=headers)
@@ -429,6 +439,7 @@ class _Handler(BaseHTTPRequestHandler):
             self._serve_hostile_body(fault.kind, body)
 
     def _serve_hostile_body(self, kind: str, body: dict) -> None:
+        self.close_connection = True  # the client may hang up mid-body; the next request gets a new connection
         doc = _completion(body, self.fake.responder(body))
         if kind in ("trickle", "trickle_headers"):
             data = json.dumps(doc).encode("utf-8")
@@ -483,11 +494,15 @@ class _Handler(BaseHTTPRequestHandler):
 _PAD = "\u0000PAD\u0000"
 
 
-def _padded(doc: dict, size: int, piece: int = 1024 * 1024):
-    """``doc`` as JSON bytes of about ``size``, its answer padded with spaces (the answer, once stripped, is
-    still the one asked for), in pieces of ``piece`` bytes: never all of it in memory."""
+def _split_padded(doc: dict) -> tuple[bytes, bytes]:
+    """``doc`` as JSON bytes before and after the end of its answer, where the padding goes."""
     doc["choices"][0]["message"]["content"] += _PAD
-    before, after = (p.encode("utf-8") for p in json.dumps(doc).split(json.dumps(_PAD)[1:-1]))
+    before, after = json.dumps(doc).split(json.dumps(_PAD)[1:-1])
+    return before.encode("utf-8"), after.encode("utf-8")
+
+
+def _pieces(before: bytes, after: bytes, size: int, piece: int = 1024 * 1024):
+    """``before``, spaces, ``after``: ``size`` bytes in all, in pieces of ``piece``, never all in memory."""
     yield before
     left = max(0, size - len(before) - len(after))
     while left > 0:
@@ -497,10 +512,21 @@ def _padded(doc: dict, size: int, piece: int = 1024 * 1024):
     yield after
 
 
+def _padded(doc: dict, size: int):
+    """``doc`` as JSON bytes of about ``size``, its answer padded with spaces (the answer, once stripped, is
+    still the one asked for), in pieces."""
+    return _pieces(*_split_padded(doc), size)
+
+
 def _bomb(doc: dict, size: int, encoding: str) -> bytes:
     """A gzip or deflate (zlib) body that inflates to a ``size``-byte completion: ~1/1000 of it."""
+    return _compressed(*_split_padded(doc), size, encoding)
+
+
+@functools.lru_cache(maxsize=8)  # a retried request gets the same bomb: made once, not at every try
+def _compressed(before: bytes, after: bytes, size: int, encoding: str) -> bytes:
     z = zlib.compressobj(9, zlib.DEFLATED, zlib.MAX_WBITS | 16 if encoding == "gzip" else zlib.MAX_WBITS)
-    return b"".join(z.compress(p) for p in _padded(doc, size)) + z.flush()
+    return b"".join(z.compress(p) for p in _pieces(before, after, size)) + z.flush()
 
 
 def _no_caption(kind: str, doc: dict) -> dict:
