@@ -76,9 +76,10 @@ def test_request_format_and_answers(server, api_key, request_factory, png_factor
 
 
 def test_concurrency_is_bounded_and_order_kept(api_key, request_factory, png_factory):
-    """Proved by the server's count, not a clock: it holds each answer until 4 requests are in flight together
-    (a barrier), so the 8 requests are answered only if the backend keeps 4 going at once, and its in-flight count
-    shows it never sent more. A slow machine only makes it slower."""
+    """Proved by counts, not a clock: the server holds each answer until 4 requests are in flight together (a
+    barrier), so the 8 requests are answered only if the backend keeps 4 going at once; and they were sent from
+    4 threads, each waiting for its answer, so never more than 4 were in flight. A slow machine only makes it
+    slower."""
     reqs = requests_for(request_factory, png_factory, 8)
     together = threading.Barrier(4, timeout=60)  # the timeout only ends a hang: a broken barrier fails the test
 
@@ -87,9 +88,18 @@ def test_concurrency_is_bounded_and_order_kept(api_key, request_factory, png_fac
         return expected_answer(body)
 
     with FakeOpenAIServer(responder=answer_when_four_are_in) as server:
-        answers = backend_for(server, concurrency=4, max_retries=0).generate(reqs)
+        backend = backend_for(server, concurrency=4, max_retries=0)
+        senders, one = [], backend._one
+
+        def sent_from_a_thread(request):
+            senders.append(threading.current_thread().name)
+            return one(request)
+
+        backend._one = sent_from_a_thread
+        answers = backend.generate(reqs)
         bodies = {canonical_json(r.body["messages"]): r.body for r in server.chat_requests}
-    assert server.max_in_flight == 4 and len(bodies) == 8 and not together.broken
+    assert len(bodies) == 8 and not together.broken
+    assert server.max_in_flight == 4 and len(senders) == 8 and len(set(senders)) == 4
     for r, a in zip(reqs, answers, strict=True):  # in request order, whatever order they finished in
         group = r.tag.group
         body = next(
