@@ -15,7 +15,10 @@ one error naming the server, the bound and the tries. The backend is checked wit
 
 from __future__ import annotations
 
+import gzip
+import json
 import secrets
+import zlib
 from pathlib import Path
 
 import pytest
@@ -26,6 +29,7 @@ from extras import needs_openai
 from vlmproprio.answering import Answerer
 from vlmproprio.backends.base import BackendError
 from vlmproprio.cache import ResponseCache
+from vlmproprio.testing import openai_server
 from vlmproprio.testing.openai_server import HOSTILE_BODY_KINDS, FakeOpenAIServer, expected_answer
 
 pytestmark = needs_openai
@@ -114,6 +118,48 @@ def test_an_announced_length_over_the_limit_is_refused_before_reading(api_key, r
         pytest.raises(BackendError, match=announced),
     ):
         backend_for(server).generate([request_factory()])
+
+
+_OK = json.dumps({"choices": [{"message": {"content": "ok"}}]}).encode("utf-8")
+# other shapes of the same classes: (status, body, headers, what the error says; None: a usable answer "ok")
+OTHER_SHAPES = {
+    "brotli, never asked for": (200, _OK, {"Content-Encoding": "br"}, "in the 'br' content encoding"),
+    "zstd, never asked for": (200, _OK, {"Content-Encoding": "zstd"}, "in the 'zstd' content encoding"),
+    "damaged gzip": (200, gzip.compress(_OK)[:-12] + b"x" * 12, {"Content-Encoding": "gzip"}, "gzip body is damaged"),
+    "gzip of a gzip bomb": (
+        200,
+        gzip.compress(gzip.compress(b" " * (4 * LIMIT))),
+        {"Content-Encoding": "gzip, gzip"},
+        "larger than the 1,048,576-byte limit once gzip-decoded",
+    ),
+    "a bomb in a 500": (500, gzip.compress(b" " * (4 * LIMIT)), {"Content-Encoding": "gzip"}, "once gzip-decoded"),
+    "UTF-16 JSON": (200, _OK.decode().encode("utf-16"), {}, "not UTF-8 (byte 0xff at offset 0)"),
+    "a lone surrogate encoded": (200, _OK.replace(b'"ok"', b'"o\xed\xa0\x80k"'), {}, "not UTF-8 (byte 0xed"),
+    "objects 500 deep (parses, then walked)": (200, b'{"a":' * 500 + b"1" + b"}" * 500, {}, "deeper than 64 levels"),
+    "gzip of gzip, small": (200, gzip.compress(gzip.compress(_OK)), {"Content-Encoding": "gzip, gzip"}, None),
+    "raw deflate (no zlib header)": (200, zlib.compress(_OK)[2:-4], {"Content-Encoding": "deflate"}, None),
+    "UTF-8 with a BOM": (200, b"\xef\xbb\xbf" + _OK, {}, None),
+}
+
+
+@pytest.mark.parametrize("shape", OTHER_SHAPES)
+def test_other_shapes_of_the_same_classes(api_key, request_factory, monkeypatch, shape):
+    status, data, headers, refused = OTHER_SHAPES[shape]
+    real_send = openai_server._Handler._send_bytes
+
+    def send(self, _status, _data, _headers=None) -> None:  # every response of the server is this one
+        real_send(self, status, data, {**(_headers or {}), **headers})
+
+    monkeypatch.setattr(openai_server._Handler, "_send_bytes", send)
+    with FakeOpenAIServer() as server:
+        if refused is None:
+            (answer,) = backend_for(server).generate([request_factory()])
+            assert answer.text == "ok"
+            return
+        with pytest.raises(BackendError) as info:
+            backend_for(server).generate([request_factory()])
+    message = str(info.value)
+    assert f"{server.base_url} sent responses that were refused ({TRIES} tries)" in message and refused in message
 
 
 def test_the_deadline_covers_each_try_not_the_whole_call(api_key, request_factory):

@@ -299,7 +299,7 @@ class OpenAIBackend(Backend):
             except (json.JSONDecodeError, openai.APIResponseValidationError, MalformedCompletion) as exc:
                 # a 200 whose body is not a chat completion: the SDK does not retry these
                 if attempt == attempts:
-                    what = str(exc) if isinstance(exc, MalformedCompletion) else type(exc).__name__
+                    what = _malformed_what(exc)
                     raise BackendError(
                         f"{where} kept answering with malformed responses ({attempts} tries): {what}"
                     ) from None
@@ -369,6 +369,15 @@ class OpenAIBackend(Backend):
 
     def _scrub(self, text: str) -> str:
         return text.replace(self._secret, "***") if self._secret else text
+
+
+def _malformed_what(exc: Exception) -> str:
+    """What was wrong with a 200 body that is not a chat completion, in words (for the one-line error)."""
+    if isinstance(exc, json.JSONDecodeError):
+        return f"the body is not JSON (character {exc.pos:,}: {exc.msg})"
+    if isinstance(exc, MalformedCompletion):
+        return str(exc)
+    return f"the body is no chat completion ({type(exc).__name__})"
 
 
 def _message(m) -> dict:
