@@ -461,7 +461,13 @@ _OPENAI_OPTIONS = (
         default=DEFAULT_KEY_ENV,
     ),
     KindOption("--concurrency", "concurrency", {"run": "requests in flight (default 4)"}, int, 4),
-    KindOption("--timeout", "timeout_s", {"run": "seconds per request (default 120)"}, float, 120.0),
+    KindOption(
+        "--timeout",
+        "timeout_s",
+        {"run": "seconds for each try of a request, all of it: connect, send, headers, body (default 120)"},
+        float,
+        120.0,
+    ),
 )
 
 register_kind(
