@@ -10,7 +10,7 @@
 
 Each is retried like other faults (a transient one ends in the fault-free answer) and, when it persists, ends in
 one error naming the server, the bound and the tries. The backend is checked with small bounds (a limit of
-1 MiB, a 0.3 s timeout), then the CLI with its defaults, in one line and no traceback.
+1 MiB, a 0.5 s timeout), then the CLI with its defaults, in one line and no traceback.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ pytestmark = needs_openai
 
 KEY_ENV = "VLMPROPRIO_TEST_BODIES_KEY"
 LIMIT = 1024 * 1024  # max_response_bytes of the backend tests
-TIMEOUT = 0.3  # seconds; the trickle sends a byte every 0.02 s, so each read alone is quick
+TIMEOUT = 0.5  # seconds; the trickle sends a byte every 0.02 s, so each read alone is quick
 TRIES = 2
 # what each kind's persistent error says, beside the server's URL and the tries
 MESSAGES = {

@@ -439,24 +439,27 @@ class _Handler(BaseHTTPRequestHandler):
             self._serve_hostile_body(fault.kind, body)
 
     def _serve_hostile_body(self, kind: str, body: dict) -> None:
-        self.close_connection = True  # the client may hang up mid-body; the next request gets a new connection
+        # the client may hang up mid-body: the connection is closed after it, and says so (Connection: close), so
+        # the client never sends its retry on a connection this end is closing (a lost try, seen as a reset)
+        close = {"Connection": "close"}
         doc = _completion(body, self.fake.responder(body))
         if kind in ("trickle", "trickle_headers"):
             data = json.dumps(doc).encode("utf-8")
-            head = f"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: {len(data)}\r\n\r\n"
-            self._trickle(kind, head.encode("ascii"), data)
+            head = f"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: {len(data)}\r\n"
+            self._trickle(kind, (head + "Connection: close\r\n\r\n").encode("ascii"), data)
         elif kind in ("gzip_bomb", "deflate_bomb"):
             encoding = kind.split("_")[0]
-            self._send_bytes(200, _bomb(doc, self.fake.bomb_bytes, encoding), {"Content-Encoding": encoding})
+            bomb = _bomb(doc, self.fake.bomb_bytes, encoding)
+            self._send_bytes(200, bomb, {"Content-Encoding": encoding, **close})
         elif kind == "huge":
             self._send_chunked(_padded(doc, self.fake.bomb_bytes))
         elif kind == "non_utf8":
             doc["choices"][0]["message"]["content"] += " caf\u00e9"
             latin1 = json.dumps(doc, ensure_ascii=False).encode("utf-8").replace("\u00e9".encode(), b"\xe9")
-            self._send_bytes(200, latin1)
+            self._send_bytes(200, latin1, close)
         elif kind == "deep_json":
             n = self.fake.deep_levels
-            self._send_bytes(200, b'{"id": "chatcmpl-deep", "choices": ' + b"[" * n + b"]" * n + b"}")
+            self._send_bytes(200, b'{"id": "chatcmpl-deep", "choices": ' + b"[" * n + b"]" * n + b"}", close)
 
     def _trickle(self, kind: str, head: bytes, data: bytes) -> None:
         """``head`` at once and ``data`` a byte at a time (for trickle_headers, all of it a byte at a time)."""
@@ -482,6 +485,7 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_response(200)
         self.send_header("Content-Type", "application/json")
         self.send_header("Transfer-Encoding", "chunked")
+        self.send_header("Connection", "close")
         self.end_headers()
         try:
             for piece in pieces:
