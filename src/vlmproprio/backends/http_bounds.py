@@ -257,9 +257,7 @@ class _BoundedBody:
 
     def close(self) -> None:
         _DEADLINE.at = None
-        close = getattr(self._raw, "close", None)
-        if close is not None:
-            close()
+        self._raw.close()  # the library's own stream: it always has close()
 
 
 @functools.cache

@@ -30,7 +30,8 @@ byte every ``trickle_s`` seconds), ``trickle_headers`` (the whole response so, f
 ``gzip_bomb`` and ``deflate_bomb`` (a small compressed body that inflates to a completion of ``bomb_bytes``),
 ``huge`` (``bomb_bytes`` of completion sent as they are, chunked, with no Content-Length), ``non_utf8`` (a
 completion with a Latin-1 byte in it) and ``deep_json`` (JSON nested ``deep_levels`` deep). Each trickle the
-server sent, and whether the client read it to the end, is kept in :attr:`FakeOpenAIServer.trickles`.
+server sent, and whether the client read it to the end, is kept in :attr:`FakeOpenAIServer.trickles`
+(the bodies are built in :mod:`vlmproprio.testing.hostile_bodies`).
 
 Reasoning: ``reasoning=`` a function of the request body returns the text a
 reasoning server (vLLM, SGLang with a reasoning parser) puts beside the
@@ -42,19 +43,19 @@ logged or written to disk.
 
 from __future__ import annotations
 
-import functools
 import hashlib
 import json
 import socket
 import struct
 import threading
 import time
-import zlib
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Literal
+
+from vlmproprio.testing.hostile_bodies import HOSTILE_BODY_KINDS, Trickle, serve_hostile_body
 
 FaultKind = Literal[
     "429",
@@ -88,16 +89,6 @@ NO_CAPTION_KINDS: tuple[str, ...] = (
     "reasoning_only",
     "other_model",
 )
-# 200s whose body must not be read to the end or used: too slow, too big once inflated, not UTF-8, too deep
-HOSTILE_BODY_KINDS: tuple[str, ...] = (
-    "trickle",
-    "trickle_headers",
-    "gzip_bomb",
-    "deflate_bomb",
-    "huge",
-    "non_utf8",
-    "deep_json",
-)
 FAULT_KINDS: tuple[str, ...] = (
     "429",
     "500",
@@ -125,16 +116,6 @@ class RecordedRequest:
     body: dict | None
     fault: str | None  # the fault served to this request, None when answered normally
     received_at: float
-
-
-@dataclass(frozen=True)
-class Trickle:
-    """One trickled response: bytes sent of all it had, and whether the client read it all (else it hung up)."""
-
-    kind: str
-    sent: int
-    total: int
-    finished: bool
 
 
 def request_digest(body: dict) -> str:
@@ -436,101 +417,7 @@ class _Handler(BaseHTTPRequestHandler):
             self.fake._closing.wait(self.fake.hang_s)
             self.close_connection = True
         else:
-            self._serve_hostile_body(fault.kind, body)
-
-    def _serve_hostile_body(self, kind: str, body: dict) -> None:
-        # the client may hang up mid-body: the connection is closed after it, and says so (Connection: close), so
-        # the client never sends its retry on a connection this end is closing (a lost try, seen as a reset)
-        close = {"Connection": "close"}
-        doc = _completion(body, self.fake.responder(body))
-        if kind in ("trickle", "trickle_headers"):
-            data = json.dumps(doc).encode("utf-8")
-            head = f"HTTP/1.1 200 OK\r\nContent-Type: application/json\r\nContent-Length: {len(data)}\r\n"
-            self._trickle(kind, (head + "Connection: close\r\n\r\n").encode("ascii"), data)
-        elif kind in ("gzip_bomb", "deflate_bomb"):
-            encoding = kind.split("_")[0]
-            bomb = _bomb(doc, self.fake.bomb_bytes, encoding)
-            self._send_bytes(200, bomb, {"Content-Encoding": encoding, **close})
-        elif kind == "huge":
-            self._send_chunked(_padded(doc, self.fake.bomb_bytes))
-        elif kind == "non_utf8":
-            doc["choices"][0]["message"]["content"] += " caf\u00e9"
-            latin1 = json.dumps(doc, ensure_ascii=False).encode("utf-8").replace("\u00e9".encode(), b"\xe9")
-            self._send_bytes(200, latin1, close)
-        elif kind == "deep_json":
-            n = self.fake.deep_levels
-            self._send_bytes(200, b'{"id": "chatcmpl-deep", "choices": ' + b"[" * n + b"]" * n + b"}", close)
-
-    def _trickle(self, kind: str, head: bytes, data: bytes) -> None:
-        """``head`` at once and ``data`` a byte at a time (for trickle_headers, all of it a byte at a time)."""
-        self.close_connection = True
-        slow = head + data if kind == "trickle_headers" else data
-        sent = 0
-        try:
-            if kind == "trickle":
-                self.wfile.write(head)
-                self.wfile.flush()
-            for i in range(len(slow)):
-                if self.fake._closing.wait(self.fake.trickle_s):
-                    break
-                self.wfile.write(slow[i : i + 1])
-                self.wfile.flush()
-                sent = i + 1
-        except OSError:  # the client hung up: what it did is in the record
-            pass
-        self.fake._trickled(Trickle(kind, sent, len(slow), sent == len(slow)))
-
-    def _send_chunked(self, pieces) -> None:
-        self.close_connection = True
-        self.send_response(200)
-        self.send_header("Content-Type", "application/json")
-        self.send_header("Transfer-Encoding", "chunked")
-        self.send_header("Connection", "close")
-        self.end_headers()
-        try:
-            for piece in pieces:
-                self.wfile.write(f"{len(piece):x}\r\n".encode("ascii") + piece + b"\r\n")
-            self.wfile.write(b"0\r\n\r\n")
-        except OSError:  # the client stopped reading
-            pass
-
-
-_PAD = "\u0000PAD\u0000"
-
-
-def _split_padded(doc: dict) -> tuple[bytes, bytes]:
-    """``doc`` as JSON bytes before and after the end of its answer, where the padding goes."""
-    doc["choices"][0]["message"]["content"] += _PAD
-    before, after = json.dumps(doc).split(json.dumps(_PAD)[1:-1])
-    return before.encode("utf-8"), after.encode("utf-8")
-
-
-def _pieces(before: bytes, after: bytes, size: int, piece: int = 1024 * 1024):
-    """``before``, spaces, ``after``: ``size`` bytes in all, in pieces of ``piece``, never all in memory."""
-    yield before
-    left = max(0, size - len(before) - len(after))
-    while left > 0:
-        n = min(piece, left)
-        yield b" " * n
-        left -= n
-    yield after
-
-
-def _padded(doc: dict, size: int):
-    """``doc`` as JSON bytes of about ``size``, its answer padded with spaces (the answer, once stripped, is
-    still the one asked for), in pieces."""
-    return _pieces(*_split_padded(doc), size)
-
-
-def _bomb(doc: dict, size: int, encoding: str) -> bytes:
-    """A gzip or deflate (zlib) body that inflates to a ``size``-byte completion: ~1/1000 of it."""
-    return _compressed(*_split_padded(doc), size, encoding)
-
-
-@functools.lru_cache(maxsize=8)  # a retried request gets the same bomb: made once, not at every try
-def _compressed(before: bytes, after: bytes, size: int, encoding: str) -> bytes:
-    z = zlib.compressobj(9, zlib.DEFLATED, zlib.MAX_WBITS | 16 if encoding == "gzip" else zlib.MAX_WBITS)
-    return b"".join(z.compress(p) for p in _pieces(before, after, size)) + z.flush()
+            serve_hostile_body(self, fault.kind, _completion(body, self.fake.responder(body)))
 
 
 def _no_caption(kind: str, doc: dict) -> dict:
