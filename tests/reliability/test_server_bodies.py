@@ -162,6 +162,25 @@ def test_other_shapes_of_the_same_classes(api_key, request_factory, monkeypatch,
     assert f"{server.base_url} sent responses that were refused ({TRIES} tries)" in message and refused in message
 
 
+def test_the_hops_of_a_redirect_share_one_deadline(api_key, request_factory, monkeypatch):
+    """A server that redirects to itself, a little slowly each time, cannot stretch one try to 20 hops."""
+    hops = []
+
+    def redirect_slowly(self) -> None:
+        self._read_body()
+        hops.append(self.path)
+        if not self.fake._closing.wait(0.3):  # each hop well within the timeout on its own
+            self.send_response(307)
+            self.send_header("Location", self.path)
+            self.send_header("Content-Length", "0")
+            self.end_headers()
+
+    monkeypatch.setattr(openai_server._Handler, "_post", redirect_slowly)
+    with FakeOpenAIServer() as server, pytest.raises(BackendError, match=r"did not answer within 1 s \(1 tries\)"):
+        backend_for(server, timeout_s=1.0, max_retries=0).generate([request_factory()])
+    assert 1 <= len(hops) < 10  # about 1 s / 0.3 s of them, not the library's 20 redirects
+
+
 def test_the_deadline_covers_each_try_not_the_whole_call(api_key, request_factory):
     """A slow but steady answer within the timeout still arrives; the SDK's retries each get the whole timeout."""
     with FakeOpenAIServer(latency_s=0.1) as server:

@@ -82,6 +82,7 @@ class _Deadline(threading.local):
 
 
 _DEADLINE = _Deadline()
+_DEADLINE_KEY = "vlmproprio_deadline"  # in a request's extensions: the monotonic time its attempt ends by
 
 
 def _left(timeout: float | None, expired: type[Exception]) -> float | None:
@@ -276,7 +277,12 @@ class BoundedTransport:
         self._http = sys.modules[type(inner).__module__.split(".")[0]]
 
     def handle_request(self, request: Any) -> Any:
-        _DEADLINE.at = time.monotonic() + self._bounds.timeout_s  # this attempt's; a retry gets its own
+        # this attempt's deadline; a retry is a new request and gets its own, but a redirect's request carries
+        # the extensions of the one it follows, so the hops of one attempt share one deadline
+        at = request.extensions.get(_DEADLINE_KEY)
+        if at is None:
+            at = request.extensions[_DEADLINE_KEY] = time.monotonic() + self._bounds.timeout_s
+        _DEADLINE.at = at
         request.headers["Accept-Encoding"] = ", ".join(DECODED_ENCODINGS)
         response = self._inner.handle_request(request)
         try:
