@@ -143,7 +143,7 @@ OTHER_SHAPES = {
 
 
 @pytest.mark.parametrize("shape", OTHER_SHAPES)
-def test_other_shapes_of_the_same_classes(api_key, request_factory, monkeypatch, shape):
+def test_other_shapes_of_the_same_classes(api_key, request_factory, monkeypatch, shape, figures):
     status, data, headers, refused = OTHER_SHAPES[shape]
     real_send = openai_server._Handler._send_bytes
 
@@ -155,14 +155,16 @@ def test_other_shapes_of_the_same_classes(api_key, request_factory, monkeypatch,
         if refused is None:
             (answer,) = backend_for(server).generate([request_factory()])
             assert answer.text == "ok"
+            figures("server bodies: other shapes", refused_and_named=0, answered=1)
             return
         with pytest.raises(BackendError) as info:
             backend_for(server).generate([request_factory()])
     message = str(info.value)
     assert f"{server.base_url} sent responses that were refused ({TRIES} tries)" in message and refused in message
+    figures("server bodies: other shapes", refused_and_named=1, answered=0)
 
 
-def test_the_hops_of_a_redirect_share_one_deadline(api_key, request_factory, monkeypatch):
+def test_the_hops_of_a_redirect_share_one_deadline(api_key, request_factory, monkeypatch, figures):
     """A server that redirects to itself, a little slowly each time, cannot stretch one try to 20 hops."""
     hops = []
 
@@ -179,6 +181,7 @@ def test_the_hops_of_a_redirect_share_one_deadline(api_key, request_factory, mon
     with FakeOpenAIServer() as server, pytest.raises(BackendError, match=r"did not answer within 1 s \(1 tries\)"):
         backend_for(server, timeout_s=1.0, max_retries=0).generate([request_factory()])
     assert 1 <= len(hops) < 10  # about 1 s / 0.3 s of them, not the library's 20 redirects
+    figures("server bodies: other shapes", refused_and_named=1, answered=0)
 
 
 def test_the_deadline_covers_each_try_not_the_whole_call(api_key, request_factory):
