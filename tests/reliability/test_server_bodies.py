@@ -184,6 +184,32 @@ def test_the_hops_of_a_redirect_share_one_deadline(api_key, request_factory, mon
     figures("server bodies: other shapes", refused_and_named=1, answered=0)
 
 
+def test_a_proxy_from_the_environment_is_bounded_too(api_key, request_factory, monkeypatch, figures):
+    """HTTP_PROXY's transport is the library's own too (built from the environment): it gets the same bounds. The
+    loopback server is the proxy here (it answers the proxied URL's path), the API host does not exist."""
+    for name in ("NO_PROXY", "no_proxy", "ALL_PROXY", "all_proxy", "HTTPS_PROXY", "https_proxy", "http_proxy"):
+        monkeypatch.delenv(name, raising=False)
+    with hostile_server() as proxy:
+        proxy.inject("trickle", times=10)
+        monkeypatch.setenv("HTTP_PROXY", f"http://127.0.0.1:{proxy.port}")
+        from vlmproprio.backends.openai import OpenAIBackend
+
+        backend = OpenAIBackend(
+            "fake-vlm",
+            base_url="http://api.vlmproprio.invalid/v1",
+            api_key_env=KEY_ENV,
+            max_retries=TRIES - 1,
+            timeout_s=TIMEOUT,
+            backoff_s=0.05,
+        )
+        with pytest.raises(BackendError, match=MESSAGES["trickle"].replace("(", r"\(").replace(")", r"\)")):
+            backend.generate([request_factory()])
+        seen, trickles = proxy.chat_requests, list(proxy.trickles)
+    assert [r.fault for r in seen] == ["trickle"] * TRIES and seen[0].path.startswith("http://api.vlmproprio.invalid/")
+    assert trickles and not any(t.finished for t in trickles)
+    figures("server bodies: other shapes", refused_and_named=1, answered=0)
+
+
 def test_the_deadline_covers_each_try_not_the_whole_call(api_key, request_factory):
     """A slow but steady answer within the timeout still arrives; the SDK's retries each get the whole timeout."""
     with FakeOpenAIServer(latency_s=0.1) as server:
