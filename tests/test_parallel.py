@@ -161,18 +161,29 @@ def test_an_error_that_cannot_be_pickled_comes_back_as_its_traceback():
         map_groups(fail, list(range(10)), 2, group=_halves)
 
 
-def test_when_this_process_fails_the_workers_are_stopped_not_awaited():
+def test_when_this_process_fails_the_workers_are_stopped_not_awaited(tmp_path):
+    """Shown by the worker's own traces, not a clock: it started, never finished its minute of work, and its
+    process is gone once map_groups has raised."""
     import time
+
+    started, finished = tmp_path / "started", tmp_path / "finished"
 
     def slow_unless_first(chunk):
         if chunk[0] == 0:
+            give_up = time.monotonic() + 120  # only ends a hang (a worker that never started): not a measurement
+            while not started.exists():
+                assert time.monotonic() < give_up, "the other chunk's worker never started"
+                time.sleep(0.01)
             raise ValueError("first chunk")
+        started.write_text(str(os.getpid()))
         time.sleep(60)
+        finished.write_text("awaited")
 
-    t = time.perf_counter()
     with pytest.raises(ValueError, match="first chunk"):
         map_groups(slow_unless_first, list(range(10)), 2, group=_halves)
-    assert time.perf_counter() - t < 30
+    assert not finished.exists()  # awaited, the worker would have slept its minute and written this first
+    with pytest.raises(ProcessLookupError):  # stopped and reaped
+        os.kill(int(started.read_text()), 0)
 
 
 def test_a_map_inside_a_worker_runs_in_that_worker():

@@ -12,6 +12,11 @@ the batch stops at once (queued requests are cancelled, so a dead server fails
 in seconds, not once per request) and a BackendError says what happened, with
 the answers already received attached (``BackendError.partial``) for the cache.
 
+Bounds (``backends.http_bounds``). ``timeout_s`` bounds each attempt as a whole (connecting, sending, the
+headers and the whole body), not each socket read, so a server trickling its answer times out like a silent
+one. A body may hold at most ``max_response_bytes`` once decompressed, and a 2xx body must be UTF-8 and nest
+at most 64 levels; a body refused so is retried like a reset connection, then named with the limit.
+
 Answers. The answer is the first choice's ``content``; the reasoning a server returns beside it (``reasoning``,
 ``reasoning_content``) is ``Answer.reasoning``, never part of the text. An answer that holds no caption, or that
 the response says another model gave, is classed (``chat.ANSWER_PROBLEMS``, in ``AnswerMeta.extra``) from the
@@ -39,6 +44,7 @@ from dataclasses import asdict, dataclass
 from typing import TYPE_CHECKING
 
 from vlmproprio.backends.base import Availability, Backend, BackendError
+from vlmproprio.backends.http_bounds import DEFAULT_MAX_RESPONSE_BYTES, Bounds, bounded_http_client, refusal_of
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart, valid_unicode
 from vlmproprio.kinds import KindOption, KindSpec, register_kind
 from vlmproprio.models import ModelRef, file_slug
@@ -180,11 +186,14 @@ class OpenAIBackend(Backend):
         max_retries: int = 4,
         max_batch_size: int | None = None,
         backoff_s: float = 0.5,
+        max_response_bytes: int = DEFAULT_MAX_RESPONSE_BYTES,
     ) -> None:
         if concurrency < 1:
             raise BackendError(f"concurrency must be >= 1, got {concurrency}")
         if not (math.isfinite(timeout_s) and timeout_s > 0):  # the socket layer would raise deep inside a request
             raise BackendError(f"timeout must be a positive number of seconds, got {timeout_s}")
+        if isinstance(max_response_bytes, bool) or not isinstance(max_response_bytes, int) or max_response_bytes < 1:
+            raise BackendError(f"max_response_bytes must be a positive whole number, got {max_response_bytes!r}")
         if not api_key_env.replace("_", "").isalnum():
             raise BackendError(f"api_key_env must be an environment variable name, got {api_key_env!r}")
         self.model = model
@@ -194,6 +203,7 @@ class OpenAIBackend(Backend):
             concurrency=concurrency,
             timeout_s=timeout_s,
             max_retries=max_retries,
+            max_response_bytes=max_response_bytes,
         )
         self.backoff_s = backoff_s
         # enough requests per call to keep every worker busy, few enough that a crash loses little
@@ -236,11 +246,13 @@ class OpenAIBackend(Backend):
             if self._client is None:
                 import openai
 
+                bounds = Bounds(self.settings.timeout_s, self.settings.max_response_bytes)
                 self._client = openai.OpenAI(
                     api_key=self._key_for_client,
                     base_url=self.settings.base_url,
                     timeout=self.settings.timeout_s,
                     max_retries=self.settings.max_retries,
+                    http_client=bounded_http_client(bounds),
                 )
             return self._client
 
@@ -296,7 +308,7 @@ class OpenAIBackend(Backend):
             except (json.JSONDecodeError, openai.APIResponseValidationError, MalformedCompletion) as exc:
                 # a 200 whose body is not a chat completion: the SDK does not retry these
                 if attempt == attempts:
-                    what = str(exc) if isinstance(exc, MalformedCompletion) else type(exc).__name__
+                    what = _malformed_what(exc)
                     raise BackendError(
                         f"{where} kept answering with malformed responses ({attempts} tries): {what}"
                     ) from None
@@ -310,6 +322,11 @@ class OpenAIBackend(Backend):
                     "the server"
                 ) from None
             except openai.APIConnectionError as exc:
+                refused = refusal_of(exc)
+                if refused is not None:  # a body over a bound, retried by the SDK like a reset connection
+                    raise BackendError(
+                        f"{where} sent responses that were refused ({attempts} tries): {refused.reason}"
+                    ) from None
                 cause = type(exc.__cause__).__name__ if exc.__cause__ else "connection error"
                 raise BackendError(
                     f"cannot reach {where} ({cause}, {attempts} tries): is the server running and the URL right?"
@@ -365,6 +382,15 @@ class OpenAIBackend(Backend):
         return scrub(text)  # every encoding of the key and of the URL's credentials, not the raw key only
 
 
+def _malformed_what(exc: Exception) -> str:
+    """What was wrong with a 200 body that is not a chat completion, in words (for the one-line error)."""
+    if isinstance(exc, json.JSONDecodeError):
+        return f"the body is not JSON (character {exc.pos:,}: {exc.msg})"
+    if isinstance(exc, MalformedCompletion):
+        return str(exc)
+    return f"the body is no chat completion ({type(exc).__name__})"
+
+
 def _message(m) -> dict:
     if all(not isinstance(p, ImagePart) for p in m.parts):
         return {"role": m.role, "content": m.text}
@@ -412,8 +438,9 @@ class OpenAISettings:
     base_url: str | None = None  # server URL, e.g. http://127.0.0.1:8000/v1 for vLLM
     api_key_env: str = DEFAULT_KEY_ENV  # the environment variable holding the key
     concurrency: int = 4  # requests in flight
-    timeout_s: float = 120.0  # per request
+    timeout_s: float = 120.0  # per attempt of a request, all of it: connect, send, headers, body
     max_retries: int = 4  # retries on 429 / 5xx / timeouts / connection errors / malformed JSON
+    max_response_bytes: int = DEFAULT_MAX_RESPONSE_BYTES  # of a response body, once decompressed
 
 
 def openai_slug(name: str, weights: str) -> str:
@@ -453,7 +480,13 @@ _OPENAI_OPTIONS = (
         default=DEFAULT_KEY_ENV,
     ),
     KindOption("--concurrency", "concurrency", {"run": "requests in flight (default 4)"}, int, 4),
-    KindOption("--timeout", "timeout_s", {"run": "seconds per request (default 120)"}, float, 120.0),
+    KindOption(
+        "--timeout",
+        "timeout_s",
+        {"run": "seconds for each try of a request, all of it: connect, send, headers, body (default 120)"},
+        float,
+        120.0,
+    ),
 )
 
 register_kind(

@@ -25,6 +25,14 @@ cut to nothing, the reasoning model's fate at a small token limit),
 (the answer in the reasoning field, content null) and ``other_model`` (the
 answer, from a model with another name).
 
+Hostile bodies, each a 200 the SDK would read to the end: ``trickle`` (the headers at once, then the body one
+byte every ``trickle_s`` seconds), ``trickle_headers`` (the whole response so, from the status line on),
+``gzip_bomb`` and ``deflate_bomb`` (a small compressed body that inflates to a completion of ``bomb_bytes``),
+``huge`` (``bomb_bytes`` of completion sent as they are, chunked, with no Content-Length), ``non_utf8`` (a
+completion with a Latin-1 byte in it) and ``deep_json`` (JSON nested ``deep_levels`` deep). Each trickle the
+server sent, and whether the client read it to the end, is kept in :attr:`FakeOpenAIServer.trickles`
+(the bodies are built in :mod:`vlmproprio.testing.hostile_bodies`).
+
 Reasoning: ``reasoning=`` a function of the request body returns the text a
 reasoning server (vLLM, SGLang with a reasoning parser) puts beside the
 answer, in ``reasoning_field`` (``reasoning_content``, vLLM's newer
@@ -56,6 +64,8 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Literal
 from urllib.parse import parse_qsl, urlsplit
 
+from vlmproprio.testing.hostile_bodies import HOSTILE_BODY_KINDS, Trickle, serve_hostile_body
+
 FaultKind = Literal[
     "429",
     "500",
@@ -70,6 +80,13 @@ FaultKind = Literal[
     "empty_choice",
     "reasoning_only",
     "other_model",
+    "trickle",
+    "trickle_headers",
+    "gzip_bomb",
+    "deflate_bomb",
+    "huge",
+    "non_utf8",
+    "deep_json",
 ]
 # completions without a caption in them: valid JSON the SDK accepts, each as the servers that send it shape it
 NO_CAPTION_KINDS: tuple[str, ...] = (
@@ -81,7 +98,16 @@ NO_CAPTION_KINDS: tuple[str, ...] = (
     "reasoning_only",
     "other_model",
 )
-FAULT_KINDS: tuple[str, ...] = ("429", "500", "hang", "reset", "malformed", "empty", *NO_CAPTION_KINDS)
+FAULT_KINDS: tuple[str, ...] = (
+    "429",
+    "500",
+    "hang",
+    "reset",
+    "malformed",
+    "empty",
+    *NO_CAPTION_KINDS,
+    *HOSTILE_BODY_KINDS,
+)
 OTHER_MODEL = "some-other-model"
 
 
@@ -137,6 +163,9 @@ class FakeOpenAIServer:
         host: str = "127.0.0.1",
         port: int = 0,
         echo_credentials: bool = False,
+        trickle_s: float = 0.05,
+        bomb_bytes: int = 200 * 1024 * 1024,
+        deep_levels: int = 100_000,
     ) -> None:
         if reasoning_field not in ("reasoning_content", "reasoning", "both"):
             raise ValueError(f"reasoning_field must be reasoning_content, reasoning or both, not {reasoning_field!r}")
@@ -146,6 +175,10 @@ class FakeOpenAIServer:
         self.reasoning = reasoning
         self.reasoning_field = reasoning_field
         self.echo_credentials = echo_credentials
+        self.trickle_s = trickle_s  # seconds between the bytes of a trickle
+        self.bomb_bytes = bomb_bytes  # what a bomb or a huge body holds, once inflated
+        self.deep_levels = deep_levels  # nesting of deep_json
+        self.trickles: list[Trickle] = []
         self._faults: deque[Fault] = deque()
         self._requests: list[RecordedRequest] = []
         self._lock = threading.Lock()
@@ -225,6 +258,10 @@ class FakeOpenAIServer:
         with self._lock:
             self._requests.append(rec)
 
+    def _trickled(self, trickle: Trickle) -> None:
+        with self._lock:
+            self.trickles.append(trickle)
+
 
 def _completion(body: dict, text: str) -> dict:
     prompt_words = sum(
@@ -297,6 +334,12 @@ class _Handler(BaseHTTPRequestHandler):
         # delayed ACK (~40 ms per request on Linux). Real servers (uvicorn, vLLM) turn it off too.
         self.connection.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
+    def handle(self) -> None:
+        try:
+            super().handle()
+        except (ConnectionResetError, BrokenPipeError):  # a client that hung up (e.g. on a bomb): not an error here
+            self.close_connection = True
+
     def log_message(self, format: str, *args) -> None:
         """Silent: request lines may carry anything, and tests want clean output."""
 
@@ -312,7 +355,10 @@ class _Handler(BaseHTTPRequestHandler):
         for k, v in (headers or {}).items():
             self.send_header(k, v)
         self.end_headers()
-        self.wfile.write(data)
+        try:
+            self.wfile.write(data)
+        except OSError:  # the client hung up (a bomb it stopped reading): nothing to print, as a real server
+            self.close_connection = True
 
     def _send_error(self, status: int, message: str, kind: str, headers: dict[str, str] | None = None) -> None:
         if self.fake.echo_credentials:
@@ -404,6 +450,8 @@ class _Handler(BaseHTTPRequestHandler):
         elif fault.kind == "hang":
             self.fake._closing.wait(self.fake.hang_s)
             self.close_connection = True
+        else:
+            serve_hostile_body(self, fault.kind, _completion(body, self.fake.responder(body)))
 
 
 def _no_caption(kind: str, doc: dict) -> dict:
