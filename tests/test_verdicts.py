@@ -242,3 +242,28 @@ def test_captions_made_of_numbers_are_a_state_echo_not_gibberish():
     w = {x["kind"]: x for x in sanity_warnings({"echo": echo}, 5)}
     assert "gibberish" not in w and "off-task" not in w
     assert w["state-echo"]["number_share"] == 1.0 and "100% of caption tokens are numbers" in w["state-echo"]["message"]
+
+
+def test_an_untested_hypothesis_says_why_and_prints_no_nan():
+    claims = load_claims()
+    h = claims.hypotheses[0]
+    undefined = {
+        "model": "m",
+        "task": h.task,
+        "metric": h.metric,
+        "a": h.a,
+        "b": h.b,
+        "n": 0,
+        "mean_diff": float("nan"),
+        "ci_low": float("nan"),
+        "ci_high": float("nan"),
+        "p_value": float("nan"),
+    }
+    mark_families([undefined], claims)
+    got = {v["hypothesis"]: v for v in verdicts([undefined], claims, ["m"])}
+    lines = [format_verdict(v) for v in got.values()]
+    assert all(v["verdict"] == "not tested" for v in got.values())
+    assert not [x for x in lines if "nan" in x.lower()], lines
+    assert f"no episode has a value of {h.metric} under both {h.a} and {h.b}" in format_verdict(got[h.id])
+    other = claims.hypotheses[-1]
+    assert f"no paired comparison of {other.a} with {other.b}" in format_verdict(got[other.id])

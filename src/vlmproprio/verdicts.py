@@ -40,7 +40,7 @@ VERDICT_RULES = {
     "not supported": "no positive effect detected: the bootstrap 95 % CI of the difference lies at or below 0, "
     "or the corrected test finds A < B; it excludes only effects above the stated bound",
     "inconclusive": "anything else: a positive effect is neither established nor excluded below the stated bound",
-    "not tested": "the run lacks condition A or B",
+    "not tested": "the run lacks condition A or B, or no episode has a value under both (the verdict says which)",
 }
 COMBINED_RULE = (
     "an intersection-union test: the combined claim is supported only when every hypothesis under it is supported "
@@ -198,8 +198,25 @@ def _finite(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
+def _number(x) -> bool:
+    return isinstance(x, (int, float)) and math.isfinite(x)
+
+
+def untested_why(row: Mapping | None, h: Hypothesis) -> str:
+    """Why a hypothesis could not be tested, in words a user can act on."""
+    if row is None:
+        return (
+            f"the run has no paired comparison of {h.a} with {h.b} on {h.task} episodes: run both conditions "
+            f"(--conditions {h.a},{h.b},...) on episodes of that task"
+        )
+    n = row.get("n") or 0
+    if not n:
+        return f"no episode has a value of {h.metric} under both {h.a} and {h.b} (every one is undefined)"
+    return f"the paired test gave no p-value on {n} episodes (every difference is undefined or the test failed)"
+
+
 def verdict_of(row: Mapping | None, alpha: float) -> str:
-    if row is None or row.get("p_holm") is None or row.get("mean_diff") is None:
+    if row is None or row.get("p_holm") is None or not _number(row.get("mean_diff")):
         return "not tested"
     d, p, hi = row["mean_diff"], row["p_holm"], row.get("ci_high")
     if d > 0 and p <= alpha:
@@ -243,6 +260,7 @@ def verdicts(paired: Sequence[Mapping], claims: Claims, models: Iterable[str]) -
                     "b": h.b,
                     "task": h.task,
                     "verdict": verdict,
+                    "why": untested_why(row, h) if verdict == "not tested" else None,
                     "n": row.get("n") if row else None,
                     "mean_diff": row.get("mean_diff") if row else None,
                     "ci_low": row.get("ci_low") if row else None,
@@ -319,7 +337,9 @@ def format_verdict(v: Mapping) -> str:
     """'h: both > none on final_trajectory_correct (all): inconclusive, diff +0.045 [+0.000, +0.136], Holm p = 0.310;
     no effect above +22.8 pp detected (exact 95 % bound; 1 vs 0 discordant of 22 episodes)'."""
     head = f"{v['hypothesis']}: {v['a']} > {v['b']} on {v['metric']} ({v['task']}): {v['verdict']}"
-    if v.get("mean_diff") is None:
+    if v["verdict"] == "not tested":
+        return f"{head} ({v.get('why') or VERDICT_RULES['not tested']})"
+    if not _number(v.get("mean_diff")):
         return head
     p = v.get("p_holm")
     ptxt = "–" if p is None else ("<0.001" if p < 0.001 else f"{p:.3f}")

@@ -67,8 +67,17 @@ def cmd_score(args: argparse.Namespace) -> int:
         print(
             f"judge {args.judge}: {agr['n']} final captions, {agr['unparsed']} unparsed; rubric vs judge kappa: {kappas}"
         )
+    _print_headline(args.run_dir)
     _print_verdicts(tables.verdicts)
     return 0
+
+
+def _print_headline(run_dir) -> None:
+    """The headline means per model and condition, as `report` prints them: the numbers on screen, not a path."""
+    from vlmproprio.report.data import load_run_scores
+    from vlmproprio.report.terminal import terminal_summary
+
+    print(terminal_summary(load_run_scores(run_dir)), end="")
 
 
 def _print_verdicts(doc: dict) -> None:
