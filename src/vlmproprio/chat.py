@@ -73,15 +73,21 @@ class GenerationConfig:
     seed: int | None = 0
     # Forces exactly this many new tokens when set (benchmarks use it so the work is comparable).
     min_new_tokens: int | None = None
+    # A reasoning model's thinking switch (the chat template's ``enable_thinking``, Qwen3's and others'): None
+    # leaves the template's default; False asks for the answer without a reasoning block.
+    thinking: bool | None = None
 
     def to_dict(self) -> dict:
         # explicit, in field order (as dataclasses.asdict gave): every cache key builds this dict
-        return {
+        d = {
             "max_new_tokens": self.max_new_tokens,
             "temperature": self.temperature,
             "seed": self.seed,
             "min_new_tokens": self.min_new_tokens,
         }
+        if self.thinking is not None:  # only when set: every key made without the switch stays what it was
+            d["thinking"] = self.thinking
+        return d
 
 
 @dataclass(frozen=True)

@@ -55,6 +55,7 @@ class RunPlan:
     pipeline: PipelineSettings = field(default_factory=PipelineSettings)
     backend: BackendSettings | None = None  # None: defaults
     max_new_tokens: int | None = None  # None: each model's registry default (512; tiny models 64)
+    thinking: bool | None = None  # a reasoning model's thinking switch; None: its chat template's default
     progress: bool = True
     # processes that caption with a model whose answers are pure (Answerer.pure: the reference captioners, a
     # cassette's replay); None: vlmproprio.parallel's default. The transcripts are the same with any number.
@@ -68,7 +69,8 @@ class RunPlan:
 
     def pipeline_for(self, model: ModelRef) -> PipelineSettings:
         n = self.max_new_tokens or model.max_new_tokens
-        return replace(self.pipeline, generation=replace(self.pipeline.generation, max_new_tokens=n))
+        thinking = self.thinking if self.thinking is not None else self.pipeline.generation.thinking
+        return replace(self.pipeline, generation=replace(self.pipeline.generation, max_new_tokens=n, thinking=thinking))
 
 
 @dataclass

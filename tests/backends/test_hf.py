@@ -220,3 +220,27 @@ def test_decoding_is_plain_greedy_whatever_the_checkpoint_suggests(
     ]
     plain = [a.text for a in tiny_qwen2vl_backend.generate(reqs)]
     assert [a.text for a in HFBackend(qwenlike, threads=1).generate(reqs)] == plain
+
+
+def test_the_thinking_switch_reaches_the_chat_template_and_the_key(tiny_qwen2vl_backend, request_factory, png_factory):
+    """--thinking off: ``enable_thinking=False`` in the chat template (Qwen3's switch); absent, the template's
+    default. The switch is part of the request's cache key only when it is given."""
+    from vlmproprio.cache import request_key
+
+    b = tiny_qwen2vl_backend
+    b.load()
+    switch = "{% if enable_thinking is defined and not enable_thinking %}<think>\n\n</think>\n\n{% endif %}"
+    saved = b.processor.chat_template
+    b.processor.chat_template = saved + switch
+    try:
+        plain = request_factory("Describe.", (png_factory(1),))
+        off = replace(plain, config=replace(plain.config, thinking=False))
+        on = replace(plain, config=replace(plain.config, thinking=True))
+        assert b._chat_text(off).endswith("<think>\n\n</think>\n\n")
+        assert not b._chat_text(plain).endswith("</think>\n\n") and not b._chat_text(on).endswith("</think>\n\n")
+    finally:
+        b.processor.chat_template = saved
+    ident = b.identity()
+    keys = {request_key(ident, r) for r in (plain, off, on)}
+    assert len(keys) == 3
+    assert "thinking" not in plain.config.to_dict() and off.config.to_dict()["thinking"] is False

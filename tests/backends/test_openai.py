@@ -327,3 +327,17 @@ def test_a_404_at_a_v1_url_asks_only_about_the_model(api_key, request_factory, p
     finally:
         httpd.shutdown()
         httpd.server_close()
+
+
+def test_the_thinking_switch_goes_to_the_server_as_chat_template_kwargs(server, api_key, request_factory, png_factory):
+    """vLLM and SGLang read ``chat_template_kwargs``; it is sent only when --thinking was given (the OpenAI API
+    itself refuses fields it does not know)."""
+    from dataclasses import replace
+
+    backend = backend_for(server)
+    plain = requests_for(request_factory, png_factory, 1)[0]
+    off = replace(plain, config=replace(plain.config, thinking=False))
+    backend.generate([plain, off])
+    bodies = [r.body for r in server.chat_requests]
+    sent = sorted(repr(b.get("chat_template_kwargs")) for b in bodies)  # in flight together: any order
+    assert sent == ["None", "{'enable_thinking': False}"]

@@ -342,7 +342,9 @@ class HFBackend(Backend):
             }
             for m in request.messages
         ]
-        return self.processor.apply_chat_template(conversation, add_generation_prompt=True, tokenize=False)
+        switch = {} if request.config.thinking is None else {"enable_thinking": request.config.thinking}
+        # extra keyword arguments reach the template as variables; one without the switch ignores it
+        return self.processor.apply_chat_template(conversation, add_generation_prompt=True, tokenize=False, **switch)
 
 
 def _eos_ids(model) -> set[int]:

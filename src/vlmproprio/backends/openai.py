@@ -372,8 +372,13 @@ class OpenAIBackend(Backend):
         }
         if cfg.seed is not None:
             body["seed"] = cfg.seed
+        extra: dict = {}
         if cfg.min_new_tokens:
-            body["extra_body"] = {"min_tokens": cfg.min_new_tokens}  # vLLM / SGLang extension
+            extra["min_tokens"] = cfg.min_new_tokens  # vLLM / SGLang extension
+        if cfg.thinking is not None:  # vLLM / SGLang: passed to the chat template (only when asked for)
+            extra["chat_template_kwargs"] = {"enable_thinking": cfg.thinking}
+        if extra:
+            body["extra_body"] = extra
         return body
 
     def _scrub(self, text: str) -> str:

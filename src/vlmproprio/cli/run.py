@@ -76,6 +76,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             prompt=PromptOptions(example=not args.no_example, version=args.prompt_version),
         ),
         max_new_tokens=args.max_new_tokens,
+        thinking={"on": True, "off": False}.get(args.thinking),
         backend=backend_settings(args, home=cache_root),
         progress=not args.no_progress,
         workers=None if args.workers is None else parse_workers(args.workers, "--workers"),
@@ -183,6 +184,12 @@ def _add_method_options(g) -> None:
         help="suite (default): texts that say only what the condition sends; paper-verbatim: the paper's texts as printed",
     )
     g.add_argument("--max-new-tokens", type=int, help="per answer (default: the model's, 512; tiny test models 64)")
+    g.add_argument(
+        "--thinking",
+        choices=("on", "off"),
+        help="a reasoning model's thinking switch: enable_thinking in an hf model's chat template, chat_template_kwargs "
+        "for a vLLM/SGLang server (default: the template's own; part of the cache key when given)",
+    )
 
 
 def add_show(sub) -> None:
