@@ -512,7 +512,11 @@ def test_explicit_to_dicts_equal_dataclasses_asdict():
 
     meta = AnswerMeta("hf", "m", "r", "bf16", "cpu", "sdpa", 3, 4, 0.5, {"a": [1, {"b": (2, 3)}], "c": None})
     for obj in (meta, GenerationConfig(max_new_tokens=7, seed=None, min_new_tokens=2), RequestTag("e", "c", "p2", 3)):
-        assert obj.to_dict() == asdict(obj) and list(obj.to_dict()) == list(asdict(obj))
+        plain = {k: v for k, v in asdict(obj).items() if not (k == "thinking" and v is None)}
+        assert obj.to_dict() == plain and list(obj.to_dict()) == list(plain)
+    # the thinking switch enters the dict (and so the cache key) only when it is set: older keys stay valid
+    switched = GenerationConfig(max_new_tokens=7, thinking=False)
+    assert switched.to_dict() == asdict(switched) and list(switched.to_dict()) == list(asdict(switched))
     copied = meta.to_dict()["extra"]
     assert copied is not meta.extra and copied["a"] is not meta.extra["a"] and copied["a"][1] is not meta.extra["a"][1]
 

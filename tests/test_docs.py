@@ -63,5 +63,5 @@ def test_the_inspect_sample_output_shows_every_metric_the_task_reports() -> None
     sample = text.split("Real output of the first command", 1)[1].split("```", 2)[1]
     shown = {w for w in re.findall(r"\b(?:final|seg)_\w+", sample)}
     reported = set(caption_metrics()) | {m.replace("seg_loo_", "seg_") for m in segmentation_paired()}
-    assert len(reported) == 12 and shown == reported
+    assert len(reported) == 14 and shown == reported
     assert f"all {len(reported)} values equal" in text

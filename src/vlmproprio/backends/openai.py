@@ -45,7 +45,8 @@ from typing import TYPE_CHECKING
 
 from vlmproprio.backends.base import Availability, Backend, BackendError
 from vlmproprio.backends.http_bounds import DEFAULT_MAX_RESPONSE_BYTES, Bounds, bounded_http_client, refusal_of
-from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart, valid_unicode
+from vlmproprio.backends.openai_replies import MalformedCompletion, answer_problem_of, read_completion, token_count
+from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart
 from vlmproprio.kinds import KindOption, KindSpec, register_kind
 from vlmproprio.models import ModelRef, file_slug
 
@@ -57,105 +58,6 @@ log = logging.getLogger(__name__)
 DEFAULT_KEY_ENV = "OPENAI_API_KEY"
 # What the SDK is given when a key-less local server (vLLM, SGLang) is used: it insists on some string.
 NO_KEY_PLACEHOLDER = "no-key"
-
-
-class MalformedCompletion(Exception):
-    """A 200 response whose body parsed but is not a usable chat completion (no choices, non-text content)."""
-
-
-def _server_text(value: object) -> str:
-    """A string field of a response as valid Unicode. JSON escapes can carry lone surrogates ("\\ud800"), which
-    no UTF-8 file can hold: they would break the cache checksum and the transcript writer."""
-    return valid_unicode(value) if isinstance(value, str) else ""
-
-
-def _count(value: object) -> int:
-    """A token count as the server gave it; anything but a non-negative integer counts as unknown (0)."""
-    return value if isinstance(value, int) and not isinstance(value, bool) and value >= 0 else 0
-
-
-@dataclass(frozen=True)
-class _Reply:
-    """What a chat completion's first choice says: the answer, the server's reasoning beside it, and the
-    response's own account of it (finish reason, model, refusal, tool calls) for the answer's metadata."""
-
-    text: str
-    reasoning: str
-    extra: dict
-
-
-# vLLM named the field reasoning_content (as DeepSeek did), then reasoning (OpenAI's guidance for gpt-oss,
-# OpenRouter's name; vLLM PR #27752), sending both for a while; SGLang sends reasoning_content.
-_REASONING_FIELDS = ("reasoning", "reasoning_content")
-
-
-def _reasoning(message: object) -> str:
-    found: list[str] = []
-    for name in _REASONING_FIELDS:
-        value = _server_text(getattr(message, name, None)).strip()
-        if value and value not in found:
-            found.append(value)
-    return "\n\n".join(found)
-
-
-def _tool_names(message: object) -> list[str]:
-    calls = getattr(message, "tool_calls", None)
-    calls = calls if isinstance(calls, list) else []
-    legacy = getattr(message, "function_call", None)
-    names = [_server_text(getattr(getattr(c, "function", None), "name", None)) or "?" for c in calls]
-    if legacy is not None:
-        names.append(_server_text(getattr(legacy, "name", None)) or "?")
-    return names
-
-
-def _completion(resp) -> _Reply:
-    """The answer of a chat completion; MalformedCompletion when the body is not one (the SDK does not check)."""
-    choices = getattr(resp, "choices", None)
-    if not isinstance(choices, list) or not choices:
-        raise MalformedCompletion("no choices in the response")
-    choice = choices[0]
-    message = getattr(choice, "message", None)
-    content = getattr(message, "content", None)
-    if content is not None and not isinstance(content, str):
-        raise MalformedCompletion(f"message content is a JSON {type(content).__name__}, not text")
-    extra: dict = {
-        "response_model": _server_text(getattr(resp, "model", "")),
-        "system_fingerprint": _server_text(getattr(resp, "system_fingerprint", "")),
-        "finish_reason": _server_text(getattr(choice, "finish_reason", "")),
-    }
-    refusal = _server_text(getattr(message, "refusal", None)).strip()
-    tools = _tool_names(message)
-    if refusal:
-        extra["refusal"] = refusal
-    if tools:
-        extra["tool_calls"] = tools
-    return _Reply(_server_text(content).strip(), _reasoning(message), extra)
-
-
-def _model_name(name: str) -> str:
-    """A model name without its date or snapshot numbers: OpenAI answers "gpt-4o" as "gpt-4o-2024-08-06" and
-    "gpt-4-vision-preview" as "gpt-4-1106-vision-preview", which are the model asked for."""
-    return "-".join(p for p in name.lower().split("-") if not (p.isdigit() and len(p) >= 2))
-
-
-def answer_problem_of(reply: _Reply, asked: str) -> str:
-    """The chat.ANSWER_PROBLEMS class of a reply ("" when it is a plain answer), the first that applies."""
-    extra = reply.extra
-    finish = extra["finish_reason"]
-    if extra.get("refusal"):
-        return "refusal"
-    if finish == "content_filter":
-        return "content_filter"
-    if extra.get("tool_calls") or finish in ("tool_calls", "function_call"):
-        return "tool_calls"
-    if finish == "length":
-        return "length"
-    if not reply.text:
-        return "reasoning_only" if reply.reasoning else "empty"
-    got = extra["response_model"]
-    if got and _model_name(got) != _model_name(asked):
-        return "other_model"
-    return ""
 
 
 def _check_key(key: str, env: str) -> None:
@@ -304,7 +206,7 @@ class OpenAIBackend(Backend):
             t0 = time.perf_counter()
             try:
                 resp = self.client.chat.completions.create(**body)
-                reply = _completion(resp)
+                reply = read_completion(resp)
             except (json.JSONDecodeError, openai.APIResponseValidationError, MalformedCompletion) as exc:
                 # a 200 whose body is not a chat completion: the SDK does not retry these
                 if attempt == attempts:
@@ -354,8 +256,8 @@ class OpenAIBackend(Backend):
             meta = AnswerMeta(
                 **self.identity(),
                 device="remote",
-                prompt_tokens=_count(getattr(usage, "prompt_tokens", 0)),
-                completion_tokens=_count(getattr(usage, "completion_tokens", 0)),
+                prompt_tokens=token_count(getattr(usage, "prompt_tokens", 0)),
+                completion_tokens=token_count(getattr(usage, "completion_tokens", 0)),
                 latency_s=latency,
                 extra=extra,
             )
