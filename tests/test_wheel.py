@@ -130,9 +130,9 @@ def test_the_benchmark_runs_against_the_installed_wheel(venv: Path, tmp_path: Pa
     cmd = [venv / "bin" / "python", "-m", "pytest", REPO / "benchmark", "--model", "reference"]
     cmd += ["--fixtures-dir", FIXTURES, "--episodes", "door_00,bin0_00", "--conditions", "none,both"]
     proc = _run([*cmd, "-q", "-p", "no:cacheprovider"], empty, env)
-    # 2 episodes x 2 conditions x 3 gates, and the claims file's own check; the verdict gates (4 hypotheses and
-    # the warnings) skip: out-of-sample numbers need every episode
-    assert "13 passed, 5 skipped" in proc.stdout, proc.stdout[-2000:]
+    # 2 episodes x 2 conditions x 3 gates, and the claims file's own check; the verdict gates (4 hypotheses, 2
+    # combined claims and the warnings) skip: out-of-sample numbers need every episode
+    assert "13 passed, 7 skipped" in proc.stdout, proc.stdout[-2000:]
     # the conftest's plugin came from the wheel, not from the source tree
     probe = [venv / "bin" / "python", "-c", "import vlmproprio.pytest_plugin as p; print(p.__file__)"]
     assert Path(_run(probe, empty, env).stdout.strip()).is_relative_to(venv)
