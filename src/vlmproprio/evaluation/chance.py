@@ -20,6 +20,7 @@ from vlmproprio.segmentation import (
     CHANCE_METRICS,
     CHANCE_SEED,
     Truth,
+    boundary_prf_gebd,
     chance_groups,
     chance_own_period,
     chance_periodic,
@@ -222,6 +223,10 @@ def add_chance(
         tr = traces[cell_key(r["model"], r["episode_id"], r["condition"])]
         _chance_columns("seg_", r, tr["predicted_boundaries"], truth, chance, shared)
         _chance_columns("seg_loo_", r, tr.get("loo_boundaries", []), truth, chance, shared)
+        # the same points by GEBD's greedy rule, beside the maximum matching the verdicts use
+        r["seg_f1_tol1_gebd"] = boundary_prf_gebd(tr["predicted_boundaries"], truth.boundaries, 1).f1
+        if r.get("seg_loo_threshold") is not None:
+            r["seg_loo_f1_tol1_gebd"] = boundary_prf_gebd(tr["loo_boundaries"], truth.boundaries, 1).f1
 
 
 @dataclass(frozen=True)

@@ -167,6 +167,7 @@ METRICS: tuple[MetricSpec, ...] = (
     _seg("seg_points", "points @thr", "count", gated="exact", gate_key="segmentation.points_at_threshold",
          compare=True, report="segmentation"),
     *_boundary_prf(),
+    _seg("seg_f1_tol1_gebd", "F1 @thr (GEBD rule)"),
     _seg("seg_edit", "edit @thr", "count", gated="float"),
     _seg("seg_edit_unmerged", "seg edit unmerged", "count", gated="float"),
     _seg("seg_f1_at_10", "seg f1 at 10", gated="float"),
@@ -180,6 +181,8 @@ METRICS: tuple[MetricSpec, ...] = (
     _seg("seg_loo_threshold", "LOO thr", report="segmentation"),
     _seg("seg_loo_points", "points LOO", "count", paired=True, report="segmentation"),
     _seg("seg_loo_f1_tol1", "F1 LOO", paired=True, compare=True, report="segmentation"),
+    # the same points by GEBD's greedy matching rule (segmentation.boundary_prf_gebd): never above the maximum
+    _seg("seg_loo_f1_tol1_gebd", "F1 LOO (GEBD rule)", report="segmentation"),
     _seg("seg_loo_f1_tol1_chance", "chance F1", report="segmentation"),
     _seg("seg_loo_f1_tol1_even", "even F1", report="segmentation"),
     _seg("seg_loo_f1_tol1_lift", "F1 lift", paired=True, compare=True, report="segmentation"),

@@ -1,8 +1,9 @@
 """Segmentation points against ground truth (every definition, with its reference, is in docs/metrics.md).
 
-* boundary precision / recall / F1 with a tolerance of ``tol`` frames and one-to-one matching, as in
-  generic event boundary detection (GEBD; Shou et al., ICCV 2021), with an absolute tolerance in frames
-  instead of GEBD's relative distance;
+* boundary precision / recall / F1 with a tolerance of ``tol`` frames and a maximum one-to-one matching
+  (``boundary_prf``), and by the greedy rule of generic event boundary detection's evaluation code
+  (``boundary_prf_gebd``; GEBD, Shou et al., ICCV 2021), both with an absolute tolerance in frames instead of
+  GEBD's relative distance;
 * frame-wise labels from the predicted segments: each predicted segment takes the ground-truth phase that
   covers most of its frames (ties: the phase that comes first in the episode) -- an oracle labelling, since
   the captions carry no phase names;
@@ -47,8 +48,9 @@ class PRF:
 def boundary_prf(pred: Sequence[int], truth: Sequence[int], tol: int = 1) -> PRF:
     """Boundary precision/recall/F1; a predicted boundary matches at most one true one within ``tol`` frames.
 
-    Greedy matching over sorted positions (each prediction takes the earliest unmatched truth in reach) is a
-    maximum matching for interval tolerances. Empty sets: precision is 1 with no predictions and no truth, 0
+    A maximum one-to-one matching (the most pairs any matching can make), computed greedily over sorted positions
+    (each prediction takes the earliest unmatched truth in reach), which is maximum for interval tolerances. GEBD's
+    own rule is another greedy matching that can make fewer pairs: ``boundary_prf_gebd``. Empty sets: precision is 1 with no predictions and no truth, 0
     with no predictions but some truth; recall likewise with the roles swapped; F1 is 0 when either is 0."""
     if tol < 0:
         raise ValueError(f"tolerance must be >= 0, got {tol}")
@@ -64,6 +66,30 @@ def boundary_prf(pred: Sequence[int], truth: Sequence[int], tol: int = 1) -> PRF
             used[k] = True
             tp += 1
             k += 1
+    precision = tp / len(p) if p else (1.0 if not t else 0.0)
+    recall = tp / len(t) if t else (1.0 if not p else 0.0)
+    f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
+    return PRF(precision, recall, f1, tp, len(p), len(t))
+
+
+def boundary_prf_gebd(pred: Sequence[int], truth: Sequence[int], tol: int = 1) -> PRF:
+    """Boundary precision/recall/F1 by GEBD's rule (Kinetics-GEBD's evaluation code): each true boundary, in
+    order, takes its nearest remaining prediction (ties: the earliest), a hit when at most ``tol`` frames away,
+    and a hit removes that prediction. Greedy, so it can pair fewer than a maximum matching (``boundary_prf``)
+    does: a truth may take the prediction a later truth needed. Empty sets as in ``boundary_prf``."""
+    if tol < 0:
+        raise ValueError(f"tolerance must be >= 0, got {tol}")
+    p = sorted(set(int(x) for x in pred))
+    t = sorted(set(int(x) for x in truth))
+    left = list(p)
+    tp = 0
+    for x in t:
+        if not left:
+            break
+        j = min(range(len(left)), key=lambda i: (abs(left[i] - x), i))
+        if abs(left[j] - x) <= tol:
+            tp += 1
+            del left[j]
     precision = tp / len(p) if p else (1.0 if not t else 0.0)
     recall = tp / len(t) if t else (1.0 if not p else 0.0)
     f1 = 2 * precision * recall / (precision + recall) if precision + recall > 0 else 0.0
