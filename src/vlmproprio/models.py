@@ -29,6 +29,8 @@ from vlmproprio.kinds import kind_spec, kind_specs
 TINY_PREFIX = "tiny:"
 STATE_RULES = "state-aware rules, NOT a VLM"  # the "weights" of `reference-state`, as `vlmproprio models` shows them
 DEFAULT_CASSETTE_DIR = Path("fixtures") / "responses"
+# The tiny families built by vlmproprio.backends.tiny_families, with the name their registry entry shows.
+TINY_FAMILY_LABELS: dict[str, str] = {"qwen3-vl": "Qwen3-VL", "gemma3": "Gemma 3"}
 MAX_NAME_LEN = 200
 _SLUG_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}$")
 _DIGEST_TAIL = re.compile(r"-[0-9a-f]{8}$")
@@ -104,6 +106,12 @@ REGISTRY: dict[str, ModelRef] = {
             "tiny-qwen2.5-vl", "hf", TINY_PREFIX + "qwen2.5-vl", "tiny random Qwen2.5-VL built locally; tests only", 64
         ),
         _registered("tiny-llava", "hf", TINY_PREFIX + "llava", "tiny random LLaVA built locally; tests only", 64),
+        *(
+            _registered(
+                f"tiny-{family}", "hf", TINY_PREFIX + family, f"tiny random {label} built locally; tests only", 64
+            )
+            for family, label in TINY_FAMILY_LABELS.items()
+        ),
         _registered(
             "reference",
             "reference",

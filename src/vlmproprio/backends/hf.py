@@ -290,8 +290,8 @@ class HFBackend(Backend):
         self.load()
         cfg = requests[0].config
         texts = [self._chat_text(r) for r in requests]
-        images = [_decode_image(img, r) for r in requests for img in r.images]
-        inputs = self.processor(images=images or None, text=texts, padding=True, return_tensors="pt")
+        images = _processor_images(self.processor, [[_decode_image(img, r) for img in r.images] for r in requests])
+        inputs = self.processor(images=images, text=texts, padding=True, return_tensors="pt")
         target = self.model.device
         inputs = {
             k: (v.to(target, dtype=self.model.dtype) if torch.is_floating_point(v) else v.to(target))
@@ -343,6 +343,20 @@ class HFBackend(Backend):
             for m in request.messages
         ]
         return self.processor.apply_chat_template(conversation, add_generation_prompt=True, tokenize=False)
+
+
+# Processors that tell which images belong to which prompt of a batch only by a list of images per prompt (they
+# refuse a flat list for a batch of several prompts); the others take one flat list in prompt order.
+NESTED_IMAGE_PROCESSORS = frozenset({"Gemma3Processor", "Idefics3Processor", "SmolVLMProcessor", "MllamaProcessor"})
+
+
+def _processor_images(processor, per_request: list[list]) -> list | None:
+    """The images of a batch as ``processor`` takes them: None without any, else flat or one list per prompt."""
+    if not any(per_request):
+        return None
+    if any(cls.__name__ in NESTED_IMAGE_PROCESSORS for cls in type(processor).__mro__):
+        return per_request
+    return [img for row in per_request for img in row]
 
 
 def _eos_ids(model) -> set[int]:

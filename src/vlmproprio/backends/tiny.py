@@ -32,7 +32,8 @@ from pathlib import Path
 from vlmproprio.backends.base import BackendError
 from vlmproprio.episodes import sha256_file
 
-FAMILIES: tuple[str, ...] = ("qwen2-vl", "qwen2.5-vl", "llava")
+# The first three are built here; the others by vlmproprio.backends.tiny_families (same tokenizer, sizes, layout).
+FAMILIES: tuple[str, ...] = ("qwen2-vl", "qwen2.5-vl", "llava", "qwen3-vl", "gemma3")
 BUILD_VERSION = 2  # 2: the LLaVA build's context holds Process 3 at the image cap
 STAMP_FILE = "vlmproprio-tiny.json"
 
@@ -100,10 +101,10 @@ def _corpus(seed: int, n: int = 4000) -> Iterator[str]:
             yield f"# Process {rng.randint(1, 3)}\nFrame {rng.randint(1, 5)}: " + " ".join(rng.sample(words, 6))
 
 
-def build_tokenizer(seed: int = 0, vocab_size: int = 1024):
-    """A Qwen2 tokenizer (byte-level BPE, no unknown tokens) trained on ``_corpus``."""
+def train_bpe(seed: int = 0, vocab_size: int = 1024) -> tuple[dict[str, int], list[tuple[str, str]]]:
+    """The vocabulary and merges of a byte-level BPE (no unknown tokens) trained on ``_corpus``, with the Qwen2
+    pre-tokenizer; ``SPECIAL_TOKENS`` are its ids 0..6."""
     from tokenizers import Regex, Tokenizer, decoders, models, normalizers, pre_tokenizers, trainers
-    from transformers import Qwen2Tokenizer
 
     bpe = Tokenizer(models.BPE())
     bpe.normalizer = normalizers.NFC()
@@ -124,8 +125,16 @@ def build_tokenizer(seed: int = 0, vocab_size: int = 1024):
     merges = [
         tuple(m) if isinstance(m, list) else tuple(m.split(" ")) for m in json.loads(bpe.to_str())["model"]["merges"]
     ]
+    return bpe.get_vocab(), merges
+
+
+def build_tokenizer(seed: int = 0, vocab_size: int = 1024):
+    """A Qwen2 tokenizer (byte-level BPE, no unknown tokens) trained on ``_corpus``."""
+    from transformers import Qwen2Tokenizer
+
+    vocab, merges = train_bpe(seed, vocab_size)
     tok = Qwen2Tokenizer(
-        vocab=bpe.get_vocab(),
+        vocab=vocab,
         merges=merges,
         unk_token=None,
         eos_token="<|im_end|>",
@@ -282,8 +291,12 @@ def build_tiny_model(family: str, out_dir: Path | str, *, seed: int = 0) -> Path
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     if family == "llava":
         _save_llava(out, seed)
-    else:
+    elif family in ("qwen2-vl", "qwen2.5-vl"):
         _save_qwen(out, family, seed)
+    else:
+        from vlmproprio.backends.tiny_families import BUILDERS
+
+        BUILDERS[family](out, seed)
     for p in out.rglob("*"):  # save_pretrained writes some files 0600; the same mode everywhere keeps builds equal
         if p.is_file():
             p.chmod(0o644)

@@ -1,0 +1,214 @@
+"""The tiny random builds of the families beyond Qwen2-VL, Qwen2.5-VL and LLaVA (see vlmproprio.backends.tiny).
+
+Each build has its family's real architecture class, processor class and processor settings (the
+published ``preprocessor_config.json`` / ``processor_config.json`` of the checkpoint named in its
+builder), its chat template (``chat_templates/<family>.jinja``, the logic of the published template for the
+system, user and assistant turns vlmproprio sends) and its special tokens, on the shared tiny byte-level BPE
+(``tiny.train_bpe``): the real tokenizers' vocabularies are not reproduced, their special tokens are. Sizes are
+tiny (hidden 64, 2 layers), the text context holds Process 3 of the longest fixture episode at the image cap,
+and the image geometry keeps the real number of tokens a 256x256 frame costs wherever the vision tower allows
+it cheaply (each builder says where it does not).
+
+Without torchvision only the ``*ImageProcessorPil`` image processors exist, and processors that also declare a
+video processor are loaded without it (vlmproprio.backends.hf_files); so, as in ``tiny._save_qwen``, such
+processors are saved piece by piece in the real repos' layout.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+from vlmproprio.backends.tiny import _generation_config, _text_config, train_bpe
+
+TEMPLATES = Path(__file__).with_name("chat_templates")
+CONTEXT = 32768  # text positions: Process 3 of a 31-frame episode at 256-300 tokens a frame is ~10k tokens
+
+
+def chat_template(family: str) -> str:
+    """The chat template of ``family``, as shipped in ``chat_templates/``."""
+    return (TEMPLATES / f"{family}.jinja").read_text()
+
+
+def family_tokenizer(
+    *,
+    bos: str | None,
+    eos: str,
+    pad: str,
+    specials: tuple[str, ...] = (),
+    named: dict[str, str] | None = None,
+    seed: int = 0,
+):
+    """The tiny BPE with a family's special tokens: ``bos``/``eos``/``pad``, the chat ``specials`` and the
+    ``named`` ones its processor reads off the tokenizer (``image_token``, ``boi_token``, ...)."""
+    from transformers import Qwen2Tokenizer
+
+    vocab, merges = train_bpe(seed)
+    named = dict(named or {})
+    tok = Qwen2Tokenizer(
+        vocab=vocab,
+        merges=merges,
+        unk_token=None,
+        bos_token=bos,
+        eos_token=eos,
+        pad_token=pad,
+        model_max_length=CONTEXT,
+        extra_special_tokens=named,
+    )
+    added = list(dict.fromkeys([*specials, *named.values()]))
+    if added:
+        tok.add_special_tokens({"additional_special_tokens": added}, replace_extra_special_tokens=False)
+    tok.padding_side = "left"  # batched generation pads on the left
+    return tok
+
+
+def _ids(tok, *tokens: str) -> list[int]:
+    ids = [tok.convert_tokens_to_ids(t) for t in tokens]
+    if any(i is None or i == tok.unk_token_id for i in ids):
+        raise RuntimeError(f"tokens missing from the tiny tokenizer: {tokens} -> {ids}")
+    return ids
+
+
+def _generation(tok, *ends: str):
+    """Greedy generation that stops at any of ``ends`` (the family's end-of-turn tokens) or the pad token."""
+    gen = _generation_config()
+    gen.eos_token_id = _ids(tok, *ends)
+    gen.pad_token_id = tok.pad_token_id
+    gen.bos_token_id = tok.bos_token_id
+    return gen
+
+
+def _text(tok, *, context: int = CONTEXT, eos: str, **extra) -> dict:
+    """The tiny text config on ``tok``: its vocabulary and special-token ids."""
+    cfg = _text_config(len(tok), context=context, **extra)
+    cfg.update(bos_token_id=tok.bos_token_id, eos_token_id=_ids(tok, eos)[0], pad_token_id=tok.pad_token_id)
+    return cfg
+
+
+def _save_model(out: Path, model_cls, config, tok, ends: tuple[str, ...], seed: int) -> None:
+    import torch
+
+    torch.manual_seed(seed)
+    model = model_cls(config).eval()
+    model.generation_config = _generation(tok, *ends)
+    model.save_pretrained(out)
+
+
+def _save_pieces(out: Path, tok, image_processor, processor_class: str, template: str, **processor_config) -> None:
+    """Tokenizer, image processor (with its ``processor_class``), the processor's own settings and the chat
+    template, each in its file: the layout of the published repos, loadable without a video processor."""
+    tok.chat_template = template
+    tok.save_pretrained(out)
+    image_processor.save_pretrained(out)
+    pp = out / "preprocessor_config.json"
+    data = json.loads(pp.read_text())
+    data["processor_class"] = processor_class
+    pp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
+    if processor_config:
+        body = {**processor_config, "processor_class": processor_class}
+        (out / "processor_config.json").write_text(json.dumps(body, indent=2, sort_keys=True) + "\n")
+    (out / "chat_template.jinja").write_text(template)
+
+
+# ------------------------------------------------------------------------------------------------ Qwen3-VL
+
+
+def save_qwen3_vl(out: Path, seed: int) -> None:
+    """Qwen3-VL (Qwen/Qwen3-VL-2B-Instruct's processor): 16 px patches merged 2x2, so a 256x256 frame is 64
+    tokens; interleaved multimodal RoPE; DeepStack features from the vision tower's first layer."""
+    from transformers import Qwen2VLImageProcessorPil, Qwen3VLConfig, Qwen3VLForConditionalGeneration
+
+    qwen = ("<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>", "<|image_pad|>", "<|video_pad|>")
+    tok = family_tokenizer(bos=None, eos="<|im_end|>", pad="<|endoftext|>", specials=qwen)
+    image, video, start, end = _ids(tok, "<|image_pad|>", "<|video_pad|>", "<|vision_start|>", "<|vision_end|>")
+    rope = {"rope_type": "default", "rope_theta": 5_000_000.0, "mrope_section": [2, 3, 3], "mrope_interleaved": True}
+    config = Qwen3VLConfig(
+        text_config=_text(tok, eos="<|im_end|>", head_dim=16, rope_parameters=rope),
+        vision_config=dict(
+            depth=2,
+            hidden_size=32,
+            intermediate_size=64,
+            num_heads=4,
+            out_hidden_size=64,
+            patch_size=16,
+            spatial_merge_size=2,
+            temporal_patch_size=2,
+            num_position_embeddings=2304,  # the real 48x48 grid of learned positions, interpolated per image
+            deepstack_visual_indexes=[0],
+        ),
+        image_token_id=image,
+        video_token_id=video,
+        vision_start_token_id=start,
+        vision_end_token_id=end,
+        tie_word_embeddings=False,
+    )
+    _save_model(out, Qwen3VLForConditionalGeneration, config, tok, ("<|im_end|>", "<|endoftext|>"), seed)
+    image_processor = Qwen2VLImageProcessorPil(
+        patch_size=16,
+        merge_size=2,
+        temporal_patch_size=2,
+        image_mean=[0.5, 0.5, 0.5],
+        image_std=[0.5, 0.5, 0.5],
+        size={"shortest_edge": 65536, "longest_edge": 16777216},
+    )
+    _save_pieces(out, tok, image_processor, "Qwen3VLProcessor", chat_template("qwen3-vl"))
+
+
+# ------------------------------------------------------------------------------------------------ Gemma 3
+
+
+def save_gemma3(out: Path, seed: int) -> None:
+    """Gemma 3 (google/gemma-3-4b-it's processor): every image becomes 256 soft tokens between
+    ``<start_of_image>`` and ``<end_of_image>``. The real SigLIP tower sees 896 px (64x64 patches pooled 4x4 to
+    16x16); the tiny one sees 224 px (16x16 patches, pooled 1x1): the same 256 tokens a frame, 16 times cheaper."""
+    from transformers import Gemma3Config, Gemma3ForConditionalGeneration, Gemma3ImageProcessorPil
+
+    named = {"image_token": "<image_soft_token>", "boi_token": "<start_of_image>", "eoi_token": "<end_of_image>"}
+    tok = family_tokenizer(
+        bos="<bos>", eos="<eos>", pad="<pad>", specials=("<start_of_turn>", "<end_of_turn>"), named=named
+    )
+    image, boi, eoi = _ids(tok, *named.values())
+    text = _text(
+        tok,
+        eos="<eos>",
+        head_dim=16,
+        query_pre_attn_scalar=16,
+        sliding_window=512,
+        layer_types=["sliding_attention", "full_attention"],
+        rope_parameters={
+            "full_attention": {"rope_type": "default", "rope_theta": 1_000_000.0},
+            "sliding_attention": {"rope_type": "default", "rope_theta": 10_000.0},
+        },
+    )
+    config = Gemma3Config(
+        text_config=text,
+        vision_config=dict(
+            hidden_size=32,
+            intermediate_size=64,
+            num_hidden_layers=2,
+            num_attention_heads=4,
+            image_size=224,
+            patch_size=14,
+        ),
+        mm_tokens_per_image=256,
+        image_token_index=image,
+        boi_token_index=boi,
+        eoi_token_index=eoi,
+        tie_word_embeddings=True,
+    )
+    _save_model(out, Gemma3ForConditionalGeneration, config, tok, ("<end_of_turn>", "<eos>"), seed)
+    image_processor = Gemma3ImageProcessorPil(
+        size={"height": 224, "width": 224},
+        image_mean=[0.5, 0.5, 0.5],
+        image_std=[0.5, 0.5, 0.5],
+        resample=2,  # bilinear, as published
+        do_pan_and_scan=False,
+    )
+    _save_pieces(out, tok, image_processor, "Gemma3Processor", chat_template("gemma3"), image_seq_length=256)
+
+
+BUILDERS: dict[str, Callable[[Path, int], None]] = {
+    "qwen3-vl": save_qwen3_vl,
+    "gemma3": save_gemma3,
+}
