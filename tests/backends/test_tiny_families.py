@@ -1,0 +1,94 @@
+"""Every tiny family end to end through the hf backend: one Door episode live (Process 1 with five images per
+request, Process 2, Process 3 with all 31 frames), recorded as a cassette, replayed, and the replay's
+transcripts and scores equal the live run's bit for bit."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from scoring_helpers import fake_spec, prefill_embeddings
+from vlmproprio.backends.tiny import FAMILIES
+from vlmproprio.cassettes import read_cassette
+from vlmproprio.conditions import parse_conditions
+from vlmproprio.episodes import load_episode
+from vlmproprio.episodes.manifest import write_manifest
+from vlmproprio.pipeline import calls_per_episode
+from vlmproprio.runner import RunPlan, run
+from vlmproprio.transcripts import read_transcripts
+
+# checked, not imported: every xdist worker collects this module, and only the one that runs it needs transformers
+pytestmark = pytest.mark.skipif(
+    importlib.util.find_spec("transformers") is None, reason="the hf backend needs the [hf] extra"
+)
+
+ROOT = Path(__file__).resolve().parents[2]
+EPISODE = "door_00"
+# the families the tiny builds had before this module (test_hf and test_live_tiny run them)
+EARLIER = ("qwen2-vl", "qwen2.5-vl", "llava")
+# Image tokens one 256x256 frame costs in each family's published processor (the tiny builds keep it)
+FRAME_TOKENS = {"qwen3-vl": 64, "gemma3": 256}
+
+
+@pytest.fixture
+def door_fixtures(tmp_path: Path) -> Path:
+    """A fixture folder of one Door episode, whose responses/ the recording writes into."""
+    dest = tmp_path / "fixtures"
+    shutil.copytree(ROOT / "fixtures" / "episodes" / EPISODE, dest / "episodes" / EPISODE)
+    write_manifest(dest)
+    return dest
+
+
+def _strip(transcripts) -> list[dict]:
+    """A transcript without what differs between a live run and a replay of it: timings, cache hits."""
+    return [t.to_dict() | {"requests": None, "timing": None} for t in transcripts]
+
+
+def _scores(run_dir: Path, cache: Path) -> list[dict]:
+    from vlmproprio.evaluation import score_run
+
+    prefill_embeddings(run_dir, fake_spec().key, cache)
+    tables = score_run(run_dir, encoder=fake_spec(), embedding_cache=cache, n_boot=50, n_perm=50, progress=False)
+    return json.loads(json.dumps(tables.rows, sort_keys=True))  # NaN == NaN, as written
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("family", [f for f in FAMILIES if f not in EARLIER])
+def test_family_records_and_replays_bit_identically(family: str, tiny_model, door_fixtures: Path, tmp_path: Path):
+    from vlmproprio.backends.registry import BackendSettings
+    from vlmproprio.backends.tiny import tiny_model_dir
+
+    model = f"tiny-{family}"
+    assert tiny_model(family) == tiny_model_dir(family)  # the run below uses the session's build
+    conditions = tuple(parse_conditions("both"))
+    common = dict(models=(model,), conditions=conditions, fixtures=door_fixtures, episode_ids=(EPISODE,))
+    [live] = run(
+        RunPlan(
+            out=tmp_path / "live",
+            mode="record",
+            cache_dir=tmp_path / "cache",
+            backend=BackendSettings.of(threads=1),
+            max_new_tokens=8,
+            progress=False,
+            **common,
+        )
+    )
+    frames = len(load_episode(door_fixtures, EPISODE).frames)
+    assert live.stats["misses"] == calls_per_episode(frames, 5)  # every request answered by the model
+    [transcript] = live.transcripts
+    assert live.cassette is not None
+    cassette = read_cassette(live.cassette)
+    assert {r.key for r in transcript.requests} <= set(cassette.entries)
+    [p3] = [cassette.entries[r.key] for r in transcript.requests if r.stage == "p3"]
+    # Process 3 at the image cap: every frame in one request, each at the family's real token cost
+    assert p3.meta["prompt_tokens"] > frames * FRAME_TOKENS[family]
+
+    [replayed] = run(RunPlan(out=tmp_path / "replay", mode="replay", progress=False, max_new_tokens=8, **common))
+    assert replayed.mode == "replay"
+    assert _strip(read_transcripts(tmp_path / "live")) == _strip(read_transcripts(tmp_path / "replay"))
+    scores = _scores(tmp_path / "live", tmp_path / "emb")
+    assert scores and scores == _scores(tmp_path / "replay", tmp_path / "emb")
