@@ -30,7 +30,12 @@ TINY_PREFIX = "tiny:"
 STATE_RULES = "state-aware rules, NOT a VLM"  # the "weights" of `reference-state`, as `vlmproprio models` shows them
 DEFAULT_CASSETTE_DIR = Path("fixtures") / "responses"
 # The tiny families built by vlmproprio.backends.tiny_families, with the name their registry entry shows.
-TINY_FAMILY_LABELS: dict[str, str] = {"qwen3-vl": "Qwen3-VL", "gemma3": "Gemma 3"}
+TINY_FAMILY_LABELS: dict[str, str] = {
+    "qwen3-vl": "Qwen3-VL",
+    "gemma3": "Gemma 3",
+    "idefics3": "Idefics3 (SmolVLM)",
+    "internvl": "InternVL",
+}
 MAX_NAME_LEN = 200
 _SLUG_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}$")
 _DIGEST_TAIL = re.compile(r"-[0-9a-f]{8}$")

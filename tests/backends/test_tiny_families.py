@@ -31,7 +31,7 @@ EPISODE = "door_00"
 # the families the tiny builds had before this module (test_hf and test_live_tiny run them)
 EARLIER = ("qwen2-vl", "qwen2.5-vl", "llava")
 # Image tokens one 256x256 frame costs in each family's published processor (the tiny builds keep it)
-FRAME_TOKENS = {"qwen3-vl": 64, "gemma3": 256}
+FRAME_TOKENS = {"qwen3-vl": 64, "gemma3": 256, "idefics3": 64, "internvl": 256}
 
 
 @pytest.fixture

@@ -208,7 +208,99 @@ def save_gemma3(out: Path, seed: int) -> None:
     _save_pieces(out, tok, image_processor, "Gemma3Processor", chat_template("gemma3"), image_seq_length=256)
 
 
+# ------------------------------------------------------------------------------------------------ Idefics3 (SmolVLM)
+
+
+def save_idefics3(out: Path, seed: int) -> None:
+    """Idefics3 as SmolVLM (HuggingFaceTB/SmolVLM-256M-Instruct's processor, 512 px views of 64 tokens: 16 px
+    patches, pixel shuffle by 4), with image splitting off. Published, splitting is on: an image is scaled so its
+    long side is 2048 px and cut into 4x4 tiles of 512 px plus a global view, so a 256x256 frame costs ~1,100
+    tokens, Process 3 at 31 frames ~41k tokens (5 times the real model's 8,192-token context), and the tiny
+    build took 6 minutes for one episode. Without splitting a frame is one 512 px view: 64 image tokens
+    between ``<fake_token_around_image><global-img>`` and ``<fake_token_around_image>``. With the real
+    checkpoints, set ``"do_image_splitting": false`` in the preprocessor config too, or cap Process 3
+    (``--max-images-p3 7`` fits 8,192 tokens with splitting on)."""
+    from transformers import Idefics3Config, Idefics3ForConditionalGeneration, Idefics3ImageProcessorPil
+
+    rows_cols = tuple(f"<row_{i + 1}_col_{j + 1}>" for i in range(6) for j in range(6))
+    specials = ("<fake_token_around_image>", "<image>", "<end_of_utterance>", "<global-img>", *rows_cols)
+    tok = family_tokenizer(bos="<|im_start|>", eos="<end_of_utterance>", pad="<|im_end|>", specials=specials)
+    [image] = _ids(tok, "<image>")
+    config = Idefics3Config(
+        text_config=dict(model_type="llama", **_text(tok, eos="<end_of_utterance>")),
+        vision_config=dict(
+            hidden_size=32,
+            intermediate_size=64,
+            num_hidden_layers=2,
+            num_attention_heads=4,
+            image_size=512,
+            patch_size=16,
+        ),
+        scale_factor=4,
+        image_token_id=image,
+        tie_word_embeddings=False,
+    )
+    _save_model(out, Idefics3ForConditionalGeneration, config, tok, ("<end_of_utterance>",), seed)
+    image_processor = Idefics3ImageProcessorPil(
+        do_image_splitting=False,
+        size={"longest_edge": 2048},
+        max_image_size={"longest_edge": 512},
+        image_mean=[0.5, 0.5, 0.5],
+        image_std=[0.5, 0.5, 0.5],
+        resample=1,  # LANCZOS, as published
+    )
+    _save_pieces(out, tok, image_processor, "Idefics3Processor", chat_template("idefics3"), image_seq_len=64)
+
+
+# ------------------------------------------------------------------------------------------------ InternVL
+
+
+def save_internvl(out: Path, seed: int) -> None:
+    """InternVL (OpenGVLab/InternVL3-1B-hf's processor, as transformers' converter writes it): 448 px tiles,
+    up to 12 by aspect ratio plus a thumbnail when there are several; a square 256x256 frame is one tile of 256
+    tokens (14 px patches, pixel shuffle 0.5) between ``<img>`` and ``</img>``. Qwen2 language model."""
+    from transformers import GotOcr2ImageProcessorPil, InternVLConfig, InternVLForConditionalGeneration
+
+    qwen = ("<|im_start|>", "<|im_end|>")
+    named = {
+        "start_image_token": "<img>",
+        "end_image_token": "</img>",
+        "context_image_token": "<IMG_CONTEXT>",
+        "video_token": "<video>",
+    }
+    tok = family_tokenizer(bos=None, eos="<|im_end|>", pad="<|endoftext|>", specials=qwen, named=named)
+    [image] = _ids(tok, "<IMG_CONTEXT>")
+    config = InternVLConfig(
+        text_config=dict(model_type="qwen2", **_text(tok, eos="<|im_end|>")),
+        vision_config=dict(
+            hidden_size=32,
+            intermediate_size=64,
+            num_hidden_layers=2,
+            num_attention_heads=4,
+            image_size=[448, 448],
+            patch_size=[14, 14],
+            use_absolute_position_embeddings=True,
+        ),
+        image_token_id=image,
+        image_seq_length=256,
+        downsample_ratio=0.5,
+        tie_word_embeddings=False,
+    )
+    _save_model(out, InternVLForConditionalGeneration, config, tok, ("<|im_end|>", "<|endoftext|>"), seed)
+    image_processor = GotOcr2ImageProcessorPil(
+        size={"height": 448, "width": 448},
+        image_mean=[0.485, 0.456, 0.406],
+        image_std=[0.229, 0.224, 0.225],
+        crop_to_patches=False,  # the processor turns it on for every call (InternVLProcessor.images_kwargs)
+        min_patches=1,
+        max_patches=12,
+    )
+    _save_pieces(out, tok, image_processor, "InternVLProcessor", chat_template("internvl"), image_seq_length=256)
+
+
 BUILDERS: dict[str, Callable[[Path, int], None]] = {
     "qwen3-vl": save_qwen3_vl,
     "gemma3": save_gemma3,
+    "idefics3": save_idefics3,
+    "internvl": save_internvl,
 }
