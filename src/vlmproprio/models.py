@@ -35,6 +35,7 @@ TINY_FAMILY_LABELS: dict[str, str] = {
     "gemma3": "Gemma 3",
     "idefics3": "Idefics3 (SmolVLM)",
     "internvl": "InternVL",
+    "llava-onevision": "LLaVA-OneVision",
 }
 MAX_NAME_LEN = 200
 _SLUG_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}$")

@@ -30,8 +30,10 @@ ROOT = Path(__file__).resolve().parents[2]
 EPISODE = "door_00"
 # the families the tiny builds had before this module (test_hf and test_live_tiny run them)
 EARLIER = ("qwen2-vl", "qwen2.5-vl", "llava")
-# Image tokens one 256x256 frame costs in each family's published processor (the tiny builds keep it)
-FRAME_TOKENS = {"qwen3-vl": 64, "gemma3": 256, "idefics3": 64, "internvl": 256}
+# Image tokens one 256x256 frame costs in each family's published processor, placeholders excluded (the tiny
+# builds keep it; LLaVA-OneVision's tiny tower has 48 px patches, 64 tokens a view where the real one has 729)
+FRAME_TOKENS = {"qwen3-vl": 64, "gemma3": 256, "idefics3": 64, "internvl": 256, "llava-onevision": 65}
+NEW_FAMILIES = [f for f in FAMILIES if f not in EARLIER]
 
 
 @pytest.fixture
@@ -57,7 +59,7 @@ def _scores(run_dir: Path, cache: Path) -> list[dict]:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("family", [f for f in FAMILIES if f not in EARLIER])
+@pytest.mark.parametrize("family", NEW_FAMILIES)
 def test_family_records_and_replays_bit_identically(family: str, tiny_model, door_fixtures: Path, tmp_path: Path):
     from vlmproprio.backends.registry import BackendSettings
     from vlmproprio.backends.tiny import tiny_model_dir
@@ -92,3 +94,32 @@ def test_family_records_and_replays_bit_identically(family: str, tiny_model, doo
     assert _strip(read_transcripts(tmp_path / "live")) == _strip(read_transcripts(tmp_path / "replay"))
     scores = _scores(tmp_path / "live", tmp_path / "emb")
     assert scores and scores == _scores(tmp_path / "replay", tmp_path / "emb")
+
+
+def _prompt_tokens(backend, frames: list[Path], n_images: int) -> int:
+    from vlmproprio.chat import ChatRequest, GenerationConfig, ImagePart, Message, RequestTag, TextPart
+
+    parts = (*(ImagePart(f.read_bytes()) for f in frames[:n_images]), TextPart("Describe the frames."))
+    request = ChatRequest(
+        (Message("user", parts),), GenerationConfig(max_new_tokens=1), tag=RequestTag("x", "y", "p1", 0)
+    )
+    return backend.generate([request])[0].meta.prompt_tokens
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("family", NEW_FAMILIES)
+def test_a_frame_costs_the_family_s_tokens(family: str, tiny_model):
+    """Frames in one prompt cost what the family's processor gives them (and the image tokens are not counted
+    in the text): LLaVA-OneVision's several-image prompts take one view per image, not its single-image tiles."""
+    from vlmproprio.backends.hf import HFBackend
+
+    backend = HFBackend(tiny_model(family), threads=1)
+    frames = sorted((ROOT / "fixtures" / "episodes" / EPISODE / "frames").glob("*.png"))
+    none, one, two = (_prompt_tokens(backend, frames, n) for n in (0, 1, 2))
+    each = (two - none) / 2
+    # a frame's wrapping tokens (<start_of_image>, row markers, newlines): a few more than its image tokens
+    assert FRAME_TOKENS[family] <= each <= FRAME_TOKENS[family] + 8, (none, one, two)
+    if family == "llava-onevision":
+        assert one - none > 2 * FRAME_TOKENS[family]  # alone, a frame also gets its anyres tile
+    else:
+        assert one - none <= FRAME_TOKENS[family] + 8

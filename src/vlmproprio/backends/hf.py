@@ -347,7 +347,11 @@ class HFBackend(Backend):
 
 # Processors that tell which images belong to which prompt of a batch only by a list of images per prompt (they
 # refuse a flat list for a batch of several prompts); the others take one flat list in prompt order.
-NESTED_IMAGE_PROCESSORS = frozenset({"Gemma3Processor", "Idefics3Processor", "SmolVLMProcessor", "MllamaProcessor"})
+# LLaVA-OneVision takes a flat list too, but then treats every image as a prompt's only one (anyres tiles for each,
+# where a prompt of several images gets one view per image).
+NESTED_IMAGE_PROCESSORS = frozenset(
+    {"Gemma3Processor", "Idefics3Processor", "SmolVLMProcessor", "MllamaProcessor", "LlavaOnevisionProcessor"}
+)
 
 
 def _processor_images(processor, per_request: list[list]) -> list | None:

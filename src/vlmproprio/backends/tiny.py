@@ -33,7 +33,16 @@ from vlmproprio.backends.base import BackendError
 from vlmproprio.episodes import sha256_file
 
 # The first three are built here; the others by vlmproprio.backends.tiny_families (same tokenizer, sizes, layout).
-FAMILIES: tuple[str, ...] = ("qwen2-vl", "qwen2.5-vl", "llava", "qwen3-vl", "gemma3", "idefics3", "internvl")
+FAMILIES: tuple[str, ...] = (
+    "qwen2-vl",
+    "qwen2.5-vl",
+    "llava",
+    "qwen3-vl",
+    "gemma3",
+    "idefics3",
+    "internvl",
+    "llava-onevision",
+)
 BUILD_VERSION = 2  # 2: the LLaVA build's context holds Process 3 at the image cap
 STAMP_FILE = "vlmproprio-tiny.json"
 

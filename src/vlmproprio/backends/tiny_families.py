@@ -298,9 +298,73 @@ def save_internvl(out: Path, seed: int) -> None:
     _save_pieces(out, tok, image_processor, "InternVLProcessor", chat_template("internvl"), image_seq_length=256)
 
 
+# ------------------------------------------------------------------------------------------------ LLaVA-OneVision
+
+ONEVISION_PINPOINTS = [[384 * r, 384 * c] for r in range(1, 7) for c in range(1, 7)]  # anyres_max_9, as published
+
+
+def save_llava_onevision(out: Path, seed: int) -> None:
+    """LLaVA-OneVision (llava-hf/llava-onevision-qwen2-0.5b-ov-hf's processor: 384 px views, the anyres grid
+    of 1x1 to 6x6 tiles, the template that puts a turn's images before its text). A prompt with several images
+    gets one base view per image; a prompt with one image gets the base view plus its anyres tiles. The real
+    SigLIP has 14 px patches: 729 tokens a view, so a frame costs 730 tokens in a several-image prompt (Process 3
+    at 31 frames is ~23k image tokens of the 32k context) and 1,485 alone. The tiny tower has 48 px patches: 64
+    tokens a view (65 a frame in a several-image prompt), the same layout 11 times cheaper."""
+    from transformers import (
+        LlavaOnevisionConfig,
+        LlavaOnevisionForConditionalGeneration,
+        LlavaOnevisionImageProcessorPil,
+    )
+
+    qwen = ("<|im_start|>", "<|im_end|>")
+    named = {"image_token": "<image>", "video_token": "<video>"}
+    tok = family_tokenizer(bos=None, eos="<|im_end|>", pad="<|endoftext|>", specials=qwen, named=named)
+    image, video = _ids(tok, "<image>", "<video>")
+    config = LlavaOnevisionConfig(
+        text_config=dict(model_type="qwen2", **_text(tok, eos="<|im_end|>")),
+        vision_config=dict(
+            model_type="siglip_vision_model",
+            hidden_size=32,
+            intermediate_size=64,
+            num_hidden_layers=2,
+            num_attention_heads=4,
+            image_size=384,
+            patch_size=48,
+            vision_use_head=False,
+        ),
+        image_token_index=image,
+        video_token_index=video,
+        vision_feature_select_strategy="full",
+        vision_feature_layer=-1,
+        vision_aspect_ratio="anyres_max_9",
+        image_grid_pinpoints=ONEVISION_PINPOINTS,
+        tie_word_embeddings=False,
+    )
+    _save_model(out, LlavaOnevisionForConditionalGeneration, config, tok, ("<|im_end|>", "<|endoftext|>"), seed)
+    image_processor = LlavaOnevisionImageProcessorPil(
+        size={"height": 384, "width": 384},
+        image_grid_pinpoints=ONEVISION_PINPOINTS,
+        image_mean=[0.5, 0.5, 0.5],
+        image_std=[0.5, 0.5, 0.5],
+        resample=3,  # bicubic, as published
+        do_pad=True,
+    )
+    _save_pieces(
+        out,
+        tok,
+        image_processor,
+        "LlavaOnevisionProcessor",
+        chat_template("llava-onevision"),
+        num_image_tokens=64,
+        vision_feature_select_strategy="full",
+        vision_aspect_ratio="anyres_max_9",
+    )
+
+
 BUILDERS: dict[str, Callable[[Path, int], None]] = {
     "qwen3-vl": save_qwen3_vl,
     "gemma3": save_gemma3,
     "idefics3": save_idefics3,
     "internvl": save_internvl,
+    "llava-onevision": save_llava_onevision,
 }
