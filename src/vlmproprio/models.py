@@ -36,6 +36,7 @@ TINY_FAMILY_LABELS: dict[str, str] = {
     "idefics3": "Idefics3 (SmolVLM)",
     "internvl": "InternVL",
     "llava-onevision": "LLaVA-OneVision",
+    "mistral3": "Mistral 3",
 }
 MAX_NAME_LEN = 200
 _SLUG_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}$")

@@ -172,7 +172,9 @@ class HFBackend(Backend):
             if self.device == "auto":
                 kwargs["device_map"] = "auto"  # accelerate spreads the layers over what is there
             model = AutoModelForImageTextToText.from_pretrained(path, **kwargs)
-        except (OSError, ValueError, ImportError) as exc:
+        except ImportError as exc:
+            raise BackendError(_missing_library_message(self.weights.model_id, path, exc)) from exc
+        except (OSError, ValueError) as exc:
             raise BackendError(f"cannot load {self.weights.model_id} from {path}: {type(exc).__name__}: {exc}") from exc
         if self.device != "auto":
             model = model.to(self.device)
@@ -361,6 +363,27 @@ def _processor_images(processor, per_request: list[list]) -> list | None:
     if any(cls.__name__ in NESTED_IMAGE_PROCESSORS for cls in type(processor).__mro__):
         return per_request
     return [img for row in per_request for img in row]
+
+
+def _model_type(path: Path) -> str:
+    try:
+        return str(json.loads((path / "config.json").read_text()).get("model_type") or "unknown")
+    except (OSError, ValueError, AttributeError):
+        return "unknown"
+
+
+def _missing_library_message(model_id: str, path: Path, exc: ImportError) -> str:
+    """One line for a model whose processor or model class needs a library that is not installed: the model, its
+    family, what is missing and the fix (transformers' own message is a paragraph)."""
+    family = _model_type(path)
+    first = " ".join(str(exc).split()).split(". ")[0].rstrip(".") or type(exc).__name__  # its first sentence
+    if "torchvision" in str(exc).lower() or getattr(exc, "name", "") == "torchvision":
+        return (
+            f"cannot load {model_id} (family {family}): {first}; transformers has no PIL-only "
+            "processor for this family: install the torchvision that matches your torch "
+            "(pip install torchvision==<the torch version's pair>) to run it"
+        )
+    return f"cannot load {model_id} (family {family}): {first}; install the missing package to run it"
 
 
 def _eos_ids(model) -> set[int]:

@@ -42,6 +42,7 @@ FAMILIES: tuple[str, ...] = (
     "idefics3",
     "internvl",
     "llava-onevision",
+    "mistral3",
 )
 BUILD_VERSION = 2  # 2: the LLaVA build's context holds Process 3 at the image cap
 STAMP_FILE = "vlmproprio-tiny.json"

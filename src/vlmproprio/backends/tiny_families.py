@@ -361,10 +361,53 @@ def save_llava_onevision(out: Path, seed: int) -> None:
     )
 
 
+# ------------------------------------------------------------------------------------------------ Mistral 3
+
+
+def save_mistral3(out: Path, seed: int) -> None:
+    """Mistral 3 (mistralai/Mistral-Small-3.1-24B-Instruct-2503's processor: Pixtral tower, 14 px patches merged
+    2x2, images up to 1,540 px kept at their size): a 256x256 frame is 9x9 = 81 tokens plus a ``[IMG_BREAK]``
+    per row and ``[IMG_END]``. Its template writes today's date into the default system prompt, so a prompt
+    without a system message changes from one day to the next (the cache key does not: it hashes the messages)."""
+    from transformers import Mistral3Config, Mistral3ForConditionalGeneration, PixtralImageProcessorPil
+
+    specials = ("[INST]", "[/INST]", "[SYSTEM_PROMPT]", "[/SYSTEM_PROMPT]", "[IMG]", "[IMG_BREAK]", "[IMG_END]")
+    tok = family_tokenizer(bos="<s>", eos="</s>", pad="<pad>", specials=specials)
+    [image] = _ids(tok, "[IMG]")
+    config = Mistral3Config(
+        text_config=dict(model_type="mistral", **_text(tok, eos="</s>", head_dim=16, sliding_window=None)),
+        vision_config=dict(
+            model_type="pixtral",
+            hidden_size=32,
+            intermediate_size=64,
+            num_hidden_layers=2,
+            num_attention_heads=4,
+            image_size=1540,
+            patch_size=14,
+        ),
+        image_token_index=image,
+        spatial_merge_size=2,
+        vision_feature_layer=-1,
+        multimodal_projector_bias=False,
+        tie_word_embeddings=False,
+    )
+    _save_model(out, Mistral3ForConditionalGeneration, config, tok, ("</s>",), seed)
+    image_processor = PixtralImageProcessorPil(
+        size={"longest_edge": 1540},
+        patch_size={"height": 14, "width": 14},
+        image_mean=[0.48145466, 0.4578275, 0.40821073],
+        image_std=[0.26862954, 0.26130258, 0.27577711],
+    )
+    _save_pieces(
+        out, tok, image_processor, "PixtralProcessor", chat_template("mistral3"), patch_size=14, spatial_merge_size=2
+    )
+
+
 BUILDERS: dict[str, Callable[[Path, int], None]] = {
     "qwen3-vl": save_qwen3_vl,
     "gemma3": save_gemma3,
     "idefics3": save_idefics3,
     "internvl": save_internvl,
     "llava-onevision": save_llava_onevision,
+    "mistral3": save_mistral3,
 }
