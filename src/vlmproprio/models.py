@@ -37,6 +37,8 @@ TINY_FAMILY_LABELS: dict[str, str] = {
     "internvl": "InternVL",
     "llava-onevision": "LLaVA-OneVision",
     "mistral3": "Mistral 3",
+    "glm4v": "GLM-4.1V",
+    "mllama": "Mllama (Llama 3.2 Vision)",
 }
 MAX_NAME_LEN = 200
 _SLUG_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}$")

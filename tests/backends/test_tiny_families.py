@@ -32,7 +32,15 @@ EPISODE = "door_00"
 EARLIER = ("qwen2-vl", "qwen2.5-vl", "llava")
 # Image tokens one 256x256 frame costs in each family's published processor, placeholders excluded (the tiny
 # builds keep it; LLaVA-OneVision's tiny tower has 48 px patches, 64 tokens a view where the real one has 729)
-FRAME_TOKENS = {"qwen3-vl": 64, "gemma3": 256, "idefics3": 64, "internvl": 256, "llava-onevision": 65, "mistral3": 81}
+FRAME_TOKENS = {
+    "qwen3-vl": 64,
+    "gemma3": 256,
+    "idefics3": 64,
+    "internvl": 256,
+    "llava-onevision": 65,
+    "mistral3": 81,
+    "glm4v": 81,
+}
 # Families whose processor transformers ships only with torchvision (PixtralProcessor): without it, their policy is
 # a one-line error naming the model, the family and the fix
 NEEDS_TORCHVISION = {"mistral3"}

@@ -43,6 +43,8 @@ FAMILIES: tuple[str, ...] = (
     "internvl",
     "llava-onevision",
     "mistral3",
+    "glm4v",
+    "mllama",
 )
 BUILD_VERSION = 2  # 2: the LLaVA build's context holds Process 3 at the image cap
 STAMP_FILE = "vlmproprio-tiny.json"

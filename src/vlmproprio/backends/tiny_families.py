@@ -403,6 +403,101 @@ def save_mistral3(out: Path, seed: int) -> None:
     )
 
 
+# ------------------------------------------------------------------------------------------------ GLM-4V
+
+
+def save_glm4v(out: Path, seed: int) -> None:
+    """GLM-4.1V (zai-org/GLM-4.1V-9B-Thinking's processor: 14 px patches merged 2x2, sizes rounded to 28 px):
+    a 256x256 frame becomes 252x252, 81 tokens between ``<|begin_of_image|>`` and ``<|end_of_image|>``;
+    multimodal RoPE on half of each head. The real model answers with a ``<think>`` trace before its caption."""
+    from transformers import Glm4vConfig, Glm4vForConditionalGeneration, Glm4vImageProcessorPil
+
+    glm = ("[gMASK]", "<sop>", "<|system|>", "<|user|>", "<|assistant|>", "<|observation|>", "<think>", "</think>")
+    vision = ("<|begin_of_image|>", "<|end_of_image|>", "<|begin_of_video|>", "<|end_of_video|>")
+    named = {"image_token": "<|image|>", "video_token": "<|video|>"}
+    ends = ("<|endoftext|>", "<|user|>", "<|observation|>")
+    tok = family_tokenizer(bos=None, eos="<|endoftext|>", pad="<|endoftext|>", specials=glm + vision, named=named)
+    image, video, start, end, vstart, vend = _ids(tok, "<|image|>", "<|video|>", *vision)
+    rope = {"rope_type": "default", "rope_theta": 10_000.0, "mrope_section": [2, 1, 1], "partial_rotary_factor": 0.5}
+    config = Glm4vConfig(
+        text_config=_text(tok, eos="<|endoftext|>", rope_parameters=rope),
+        vision_config=dict(
+            depth=2,
+            hidden_size=32,
+            intermediate_size=64,
+            num_heads=4,
+            out_hidden_size=64,
+            image_size=336,
+            patch_size=14,
+            spatial_merge_size=2,
+            temporal_patch_size=2,
+        ),
+        image_token_id=image,
+        video_token_id=video,
+        image_start_token_id=start,
+        image_end_token_id=end,
+        video_start_token_id=vstart,
+        video_end_token_id=vend,
+        tie_word_embeddings=False,
+    )
+    _save_model(out, Glm4vForConditionalGeneration, config, tok, ends, seed)
+    image_processor = Glm4vImageProcessorPil(
+        size={"shortest_edge": 12544, "longest_edge": 9633792},
+        patch_size=14,
+        temporal_patch_size=2,
+        merge_size=2,
+        image_mean=[0.48145466, 0.4578275, 0.40821073],
+        image_std=[0.26862954, 0.26130258, 0.27577711],
+    )
+    _save_pieces(out, tok, image_processor, "Glm4vProcessor", chat_template("glm4v"))
+
+
+# ------------------------------------------------------------------------------------------------ Mllama
+
+
+def save_mllama(out: Path, seed: int) -> None:
+    """Mllama, Llama 3.2 Vision (meta-llama/Llama-3.2-11B-Vision-Instruct's processor: 560 px tiles, up to 4 by
+    aspect ratio). Images enter through cross-attention layers, not the prompt: a frame is one ``<|image|>``
+    token in the text however large it is, and its tiles (one for a 256x256 frame, padded to 4) are attended
+    from the text tokens after it. The published model card supports one image per prompt; transformers runs
+    several, each text token attending to the images before it. The template is the logic of the published one
+    without its tool-calling and date lines (transformers' tests use the same). The tiny tower has 56 px patches
+    (101 positions a tile, where the real one has 1,601): the prompt is the same, the cross-attention 16 times
+    smaller."""
+    from transformers import MllamaConfig, MllamaForConditionalGeneration, MllamaImageProcessorPil
+
+    specials = ("<|start_header_id|>", "<|end_header_id|>", "<|eot_id|>", "<|end_of_text|>", "<|python_tag|>")
+    named = {"image_token": "<|image|>"}
+    bos, pad = "<|begin_of_text|>", "<|finetune_right_pad_id|>"
+    tok = family_tokenizer(bos=bos, eos="<|eot_id|>", pad=pad, specials=specials, named=named)
+    [image] = _ids(tok, "<|image|>")
+    config = MllamaConfig(
+        text_config=dict(**_text(tok, eos="<|eot_id|>"), cross_attention_layers=[1]),
+        vision_config=dict(
+            hidden_size=32,
+            intermediate_size=64,
+            num_hidden_layers=2,
+            num_global_layers=1,
+            attention_heads=4,
+            image_size=560,
+            patch_size=56,  # the real 14 px: 1,601 positions a tile, and one episode took 6.5 minutes here
+            max_num_tiles=4,
+            intermediate_layers_indices=[0],
+            vision_output_dim=64,  # hidden size x (intermediate layers + 1)
+            supported_aspect_ratios=[[1, 1], [1, 2], [1, 3], [1, 4], [2, 1], [2, 2], [3, 1], [4, 1]],
+        ),
+        image_token_index=image,
+    )
+    _save_model(out, MllamaForConditionalGeneration, config, tok, ("<|eot_id|>", "<|end_of_text|>"), seed)
+    image_processor = MllamaImageProcessorPil(
+        size={"height": 560, "width": 560},
+        max_image_tiles=4,
+        image_mean=[0.48145466, 0.4578275, 0.40821073],
+        image_std=[0.26862954, 0.26130258, 0.27577711],
+    )
+    _save_pieces(out, tok, image_processor, "MllamaProcessor", chat_template("mllama"))
+
+
 BUILDERS: dict[str, Callable[[Path, int], None]] = {
     "qwen3-vl": save_qwen3_vl,
     "gemma3": save_gemma3,
@@ -410,4 +505,6 @@ BUILDERS: dict[str, Callable[[Path, int], None]] = {
     "internvl": save_internvl,
     "llava-onevision": save_llava_onevision,
     "mistral3": save_mistral3,
+    "glm4v": save_glm4v,
+    "mllama": save_mllama,
 }
