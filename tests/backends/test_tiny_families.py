@@ -40,6 +40,7 @@ FRAME_TOKENS = {
     "llava-onevision": 65,
     "mistral3": 81,
     "glm4v": 81,
+    "mllama": 1,  # cross-attention: the frame is one <|image|> token in the text
 }
 # Families whose processor transformers ships only with torchvision (PixtralProcessor): without it, their policy is
 # a one-line error naming the model, the family and the fix
