@@ -102,6 +102,49 @@ REGISTRY: dict[str, ModelRef] = {
             "LLaVA-OneVision 0.5B (transformers port), open weights",
         ),
         _registered(
+            "llava-onevision-7b",
+            "hf",
+            "llava-hf/llava-onevision-qwen2-7b-ov-hf",
+            "LLaVA-OneVision 7B (transformers port), open weights",
+        ),
+        # The families of tiny_families, at their published sizes (docs/models.md: what a frame costs in each,
+        # whether Process 3 fits the context, and what needs torchvision)
+        _registered("qwen3-vl", "hf", "Qwen/Qwen3-VL-2B-Instruct", "Qwen3-VL 2B Instruct, open weights"),
+        _registered("qwen3-vl-4b", "hf", "Qwen/Qwen3-VL-4B-Instruct", "Qwen3-VL 4B Instruct, open weights"),
+        _registered("gemma3", "hf", "google/gemma-3-4b-it", "Gemma 3 4B instruction-tuned, open weights (gated)"),
+        _registered("gemma3-12b", "hf", "google/gemma-3-12b-it", "Gemma 3 12B instruction-tuned, open weights (gated)"),
+        _registered(
+            "smolvlm", "hf", "HuggingFaceTB/SmolVLM-256M-Instruct", "SmolVLM 256M Instruct (Idefics3), open weights"
+        ),
+        _registered(
+            "smolvlm-2.2b", "hf", "HuggingFaceTB/SmolVLM-Instruct", "SmolVLM 2.2B Instruct (Idefics3), open weights"
+        ),
+        _registered("internvl3", "hf", "OpenGVLab/InternVL3-1B-hf", "InternVL3 1B (transformers port), open weights"),
+        _registered(
+            "internvl3-2b", "hf", "OpenGVLab/InternVL3-2B-hf", "InternVL3 2B (transformers port), open weights"
+        ),
+        _registered(
+            "mistral3",
+            "hf",
+            "mistralai/Mistral-Small-3.1-24B-Instruct-2503",
+            "Mistral Small 3.1 24B Instruct (Mistral 3), open weights; needs torchvision",
+        ),
+        _registered("glm4v", "hf", "zai-org/GLM-4.1V-9B-Thinking", "GLM-4.1V 9B Thinking, open weights"),
+        _registered(
+            "mllama",
+            "hf",
+            "meta-llama/Llama-3.2-11B-Vision-Instruct",
+            "Llama 3.2 11B Vision Instruct (Mllama), open weights (gated)",
+        ),
+        _registered(
+            "mllama-90b",
+            "hf",
+            "meta-llama/Llama-3.2-90B-Vision-Instruct",
+            "Llama 3.2 90B Vision Instruct (Mllama), open weights (gated)",
+        ),
+        _registered("lfm2-vl", "hf", "LiquidAI/LFM2-VL-450M", "LFM2-VL 450M, open weights; needs torchvision"),
+        _registered("lfm2-vl-1.6b", "hf", "LiquidAI/LFM2-VL-1.6B", "LFM2-VL 1.6B, open weights; needs torchvision"),
+        _registered(
             "gpt-4v",
             "openai",
             "gpt-4-vision-preview",

@@ -38,7 +38,7 @@ FRAME_TOKENS = {
     "idefics3": 64,
     "internvl": 256,
     "llava-onevision": 65,
-    "mistral3": 81,
+    "mistral3": 100,  # 256 px rounded up to 280 by the image processor
     "glm4v": 81,
     "mllama": 1,  # cross-attention: the frame is one <|image|> token in the text
 }

@@ -366,8 +366,8 @@ def save_llava_onevision(out: Path, seed: int) -> None:
 
 def save_mistral3(out: Path, seed: int) -> None:
     """Mistral 3 (mistralai/Mistral-Small-3.1-24B-Instruct-2503's processor: Pixtral tower, 14 px patches merged
-    2x2, images up to 1,540 px kept at their size): a 256x256 frame is 9x9 = 81 tokens plus a ``[IMG_BREAK]``
-    per row and ``[IMG_END]``. Its template writes today's date into the default system prompt, so a prompt
+    2x2, sizes rounded up to 28 px, up to 1,540 px): a 256x256 frame becomes 280x280, 10x10 = 100 tokens plus
+    an ``[IMG_BREAK]`` after each row but the last and an ``[IMG_END]``. Its template writes today's date into the default system prompt, so a prompt
     without a system message changes from one day to the next (the cache key does not: it hashes the messages)."""
     from transformers import Mistral3Config, Mistral3ForConditionalGeneration, PixtralImageProcessorPil
 
