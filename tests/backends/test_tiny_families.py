@@ -157,3 +157,23 @@ def test_a_frame_costs_the_family_s_tokens(family: str, tiny_model):
         assert one - none > 2 * FRAME_TOKENS[family]  # alone, a frame also gets its anyres tile
     else:
         assert one - none <= FRAME_TOKENS[family] + 12
+
+
+def _docs_table(heading: str) -> list[list[str]]:
+    """The rows of the first table under ``heading`` in docs/models.md, cells stripped of backticks."""
+    text = (ROOT / "docs" / "models.md").read_text()
+    section = text.split(f"## {heading}\n", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith("| ")]
+    return [[c.strip().strip("`") for c in row.strip("|").split("|")] for row in rows[2:]]  # past header, rule
+
+
+def test_every_family_has_a_tiny_name_and_the_docs_list_them():
+    from vlmproprio.models import REGISTRY, TINY_FAMILY_LABELS, resolve_model
+
+    assert set(FAMILIES) == set(EARLIER) | set(TINY_FAMILY_LABELS)
+    for family in FAMILIES:
+        assert resolve_model(f"tiny-{family}").tiny_family == family
+    assert [row[0] for row in _docs_table("Tiny random builds")] == [f"tiny-{f}" for f in FAMILIES]
+    published = {row[0]: row[1] for row in _docs_table("Published checkpoints")}
+    registry = {name: ref.weights for name, ref in REGISTRY.items() if ref.kind == "hf" and not ref.tiny_family}
+    assert published == registry  # every hf checkpoint of the registry is in the table, with its weights

@@ -1,8 +1,10 @@
 """Tiny random vision-language checkpoints, built offline and bit-for-bit reproducibly, for tests and CI.
 
-Three families with the real architectures and processors but a few hundred
-thousand random parameters: ``qwen2-vl`` (Qwen2VLForConditionalGeneration),
-``qwen2.5-vl`` and ``llava`` (a CLIP vision tower on a Qwen2 language model).
+Families with the real architectures and processors but a few hundred thousand random parameters
+(``FAMILIES``). Built here: ``qwen2-vl`` (Qwen2VLForConditionalGeneration), ``qwen2.5-vl`` and ``llava`` (a
+CLIP vision tower on a Qwen2 language model); the others (Qwen3-VL, Gemma 3, Idefics3, InternVL,
+LLaVA-OneVision, Mistral 3, GLM-4.1V, Mllama) by vlmproprio.backends.tiny_families, with their chat templates
+as data files (docs/models.md lists them and what each keeps of the published geometry).
 The tokenizer is a byte-level BPE trained here on synthetic robot-prompt text,
 with the Qwen2 pre-tokenizer and special tokens; the chat templates follow the
 real models' (written from their published logic, an approximation). The
