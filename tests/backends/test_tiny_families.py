@@ -177,3 +177,45 @@ def test_every_family_has_a_tiny_name_and_the_docs_list_them():
     published = {row[0]: row[1] for row in _docs_table("Published checkpoints")}
     registry = {name: ref.weights for name, ref in REGISTRY.items() if ref.kind == "hf" and not ref.tiny_family}
     assert published == registry  # every hf checkpoint of the registry is in the table, with its weights
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("family", NEW_FAMILIES)
+def test_batched_answers_equal_one_by_one(family: str, tiny_model):
+    """Left-padded batches of prompts with different image counts (0, 1, 2, 5) answer as the prompts alone do:
+    the images of a batch reach the right prompt, in whichever layout the family's processor takes them."""
+    from vlmproprio.backends.hf import HFBackend
+    from vlmproprio.chat import ChatRequest, GenerationConfig, ImagePart, Message, RequestTag, TextPart
+
+    backend = HFBackend(tiny_model(family), model_id=f"tiny-{family}", max_batch_size=4, threads=1)
+    if _unrunnable(family):
+        _refused(family, backend.load)
+        return
+    frames = sorted((ROOT / "fixtures" / "episodes" / EPISODE / "frames").glob("*.png"))
+    requests = [
+        ChatRequest(
+            (
+                Message(
+                    "user", (*(ImagePart(f.read_bytes()) for f in frames[i : i + n]), TextPart("Frame 1:" * (i + 1)))
+                ),
+            ),
+            GenerationConfig(max_new_tokens=6),
+            tag=RequestTag(EPISODE, "both", "p1", i),
+        )
+        for i, n in enumerate((2, 0, 5, 1))
+    ]
+    assert len(backend.plan_batches(requests)) == 1  # one batch of all four
+    batched = backend.generate(requests)
+    alone = [backend.generate([r])[0] for r in requests]
+    assert [a.text for a in batched] == [a.text for a in alone]
+    assert [a.meta.prompt_tokens for a in batched] == [a.meta.prompt_tokens for a in alone]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("family", NEW_FAMILIES)
+def test_build_is_sha256_identical(family: str, tiny_model, tmp_path: Path):
+    from vlmproprio.backends.tiny import build_tiny_model, file_hashes
+
+    first, again = file_hashes(tiny_model(family)), file_hashes(build_tiny_model(family, tmp_path / family))
+    assert "model.safetensors" in first and "chat_template.jinja" in first
+    assert first == again
