@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from vlmproprio.backends.base import Availability, Backend, BackendError
+from vlmproprio.backends.hf_families import missing_library_message, processor_images
 from vlmproprio.backends.hf_files import hf_weights_available, load_processor, resolve_weights
 from vlmproprio.backends.hf_tokens import PromptTokenCounter
 from vlmproprio.backends.scheduling import RequestShape, plan_batches, round_up
@@ -173,7 +174,7 @@ class HFBackend(Backend):
                 kwargs["device_map"] = "auto"  # accelerate spreads the layers over what is there
             model = AutoModelForImageTextToText.from_pretrained(path, **kwargs)
         except ImportError as exc:
-            raise BackendError(_missing_library_message(self.weights.model_id, path, exc)) from exc
+            raise BackendError(missing_library_message(self.weights.model_id, path, exc)) from exc
         except (OSError, ValueError) as exc:
             raise BackendError(f"cannot load {self.weights.model_id} from {path}: {type(exc).__name__}: {exc}") from exc
         if self.device != "auto":
@@ -292,7 +293,7 @@ class HFBackend(Backend):
         self.load()
         cfg = requests[0].config
         texts = [self._chat_text(r) for r in requests]
-        images = _processor_images(self.processor, [[_decode_image(img, r) for img in r.images] for r in requests])
+        images = processor_images(self.processor, [[_decode_image(img, r) for img in r.images] for r in requests])
         inputs = self.processor(images=images, text=texts, padding=True, return_tensors="pt")
         target = self.model.device
         inputs = {
@@ -345,45 +346,6 @@ class HFBackend(Backend):
             for m in request.messages
         ]
         return self.processor.apply_chat_template(conversation, add_generation_prompt=True, tokenize=False)
-
-
-# Processors that tell which images belong to which prompt of a batch only by a list of images per prompt (they
-# refuse a flat list for a batch of several prompts); the others take one flat list in prompt order.
-# LLaVA-OneVision takes a flat list too, but then treats every image as a prompt's only one (anyres tiles for each,
-# where a prompt of several images gets one view per image).
-NESTED_IMAGE_PROCESSORS = frozenset(
-    {"Gemma3Processor", "Idefics3Processor", "SmolVLMProcessor", "MllamaProcessor", "LlavaOnevisionProcessor"}
-)
-
-
-def _processor_images(processor, per_request: list[list]) -> list | None:
-    """The images of a batch as ``processor`` takes them: None without any, else flat or one list per prompt."""
-    if not any(per_request):
-        return None
-    if any(cls.__name__ in NESTED_IMAGE_PROCESSORS for cls in type(processor).__mro__):
-        return per_request
-    return [img for row in per_request for img in row]
-
-
-def _model_type(path: Path) -> str:
-    try:
-        return str(json.loads((path / "config.json").read_text()).get("model_type") or "unknown")
-    except (OSError, ValueError, AttributeError):
-        return "unknown"
-
-
-def _missing_library_message(model_id: str, path: Path, exc: ImportError) -> str:
-    """One line for a model whose processor or model class needs a library that is not installed: the model, its
-    family, what is missing and the fix (transformers' own message is a paragraph)."""
-    family = _model_type(path)
-    first = " ".join(str(exc).split()).split(". ")[0].rstrip(".") or type(exc).__name__  # its first sentence
-    if "torchvision" in str(exc).lower() or getattr(exc, "name", "") == "torchvision":
-        return (
-            f"cannot load {model_id} (family {family}): {first}; transformers has no PIL-only "
-            "processor for this family: install the torchvision that matches your torch "
-            "(pip install torchvision==<the torch version's pair>) to run it"
-        )
-    return f"cannot load {model_id} (family {family}): {first}; install the missing package to run it"
 
 
 def _eos_ids(model) -> set[int]:

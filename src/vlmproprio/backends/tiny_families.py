@@ -9,107 +9,22 @@ tiny (hidden 64, 2 layers), the text context holds Process 3 of the longest fixt
 and the image geometry keeps the real number of tokens a 256x256 frame costs wherever the vision tower allows
 it cheaply (each builder says where it does not).
 
-Without torchvision only the ``*ImageProcessorPil`` image processors exist, and processors that also declare a
-video processor are loaded without it (vlmproprio.backends.hf_files); so, as in ``tiny._save_qwen``, such
-processors are saved piece by piece in the real repos' layout.
+What the builds share (tokenizer, text config, file layout) is vlmproprio.backends.tiny_common.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from pathlib import Path
 
-from vlmproprio.backends.tiny import _generation_config, _text_config, train_bpe
-
-TEMPLATES = Path(__file__).with_name("chat_templates")
-CONTEXT = 32768  # text positions: Process 3 of a 31-frame episode at 256-300 tokens a frame is ~10k tokens
-
-
-def chat_template(family: str) -> str:
-    """The chat template of ``family``, as shipped in ``chat_templates/``."""
-    return (TEMPLATES / f"{family}.jinja").read_text()
-
-
-def family_tokenizer(
-    *,
-    bos: str | None,
-    eos: str,
-    pad: str,
-    specials: tuple[str, ...] = (),
-    named: dict[str, str] | None = None,
-    seed: int = 0,
-):
-    """The tiny BPE with a family's special tokens: ``bos``/``eos``/``pad``, the chat ``specials`` and the
-    ``named`` ones its processor reads off the tokenizer (``image_token``, ``boi_token``, ...)."""
-    from transformers import Qwen2Tokenizer
-
-    vocab, merges = train_bpe(seed)
-    named = dict(named or {})
-    tok = Qwen2Tokenizer(
-        vocab=vocab,
-        merges=merges,
-        unk_token=None,
-        bos_token=bos,
-        eos_token=eos,
-        pad_token=pad,
-        model_max_length=CONTEXT,
-        extra_special_tokens=named,
-    )
-    added = list(dict.fromkeys([*specials, *named.values()]))
-    if added:
-        tok.add_special_tokens({"additional_special_tokens": added}, replace_extra_special_tokens=False)
-    tok.padding_side = "left"  # batched generation pads on the left
-    return tok
-
-
-def _ids(tok, *tokens: str) -> list[int]:
-    ids = [tok.convert_tokens_to_ids(t) for t in tokens]
-    if any(i is None or i == tok.unk_token_id for i in ids):
-        raise RuntimeError(f"tokens missing from the tiny tokenizer: {tokens} -> {ids}")
-    return ids
-
-
-def _generation(tok, *ends: str):
-    """Greedy generation that stops at any of ``ends`` (the family's end-of-turn tokens) or the pad token."""
-    gen = _generation_config()
-    gen.eos_token_id = _ids(tok, *ends)
-    gen.pad_token_id = tok.pad_token_id
-    gen.bos_token_id = tok.bos_token_id
-    return gen
-
-
-def _text(tok, *, context: int = CONTEXT, eos: str, **extra) -> dict:
-    """The tiny text config on ``tok``: its vocabulary and special-token ids."""
-    cfg = _text_config(len(tok), context=context, **extra)
-    cfg.update(bos_token_id=tok.bos_token_id, eos_token_id=_ids(tok, eos)[0], pad_token_id=tok.pad_token_id)
-    return cfg
-
-
-def _save_model(out: Path, model_cls, config, tok, ends: tuple[str, ...], seed: int) -> None:
-    import torch
-
-    torch.manual_seed(seed)
-    model = model_cls(config).eval()
-    model.generation_config = _generation(tok, *ends)
-    model.save_pretrained(out)
-
-
-def _save_pieces(out: Path, tok, image_processor, processor_class: str, template: str, **processor_config) -> None:
-    """Tokenizer, image processor (with its ``processor_class``), the processor's own settings and the chat
-    template, each in its file: the layout of the published repos, loadable without a video processor."""
-    tok.chat_template = template
-    tok.save_pretrained(out)
-    image_processor.save_pretrained(out)
-    pp = out / "preprocessor_config.json"
-    data = json.loads(pp.read_text())
-    data["processor_class"] = processor_class
-    pp.write_text(json.dumps(data, indent=2, sort_keys=True) + "\n")
-    if processor_config:
-        body = {**processor_config, "processor_class": processor_class}
-        (out / "processor_config.json").write_text(json.dumps(body, indent=2, sort_keys=True) + "\n")
-    (out / "chat_template.jinja").write_text(template)
-
+from vlmproprio.backends.tiny_common import (
+    chat_template,
+    family_tokenizer,
+    save_model,
+    save_pieces,
+    tiny_text_config,
+    token_ids,
+)
 
 # ------------------------------------------------------------------------------------------------ Qwen3-VL
 
@@ -121,10 +36,10 @@ def save_qwen3_vl(out: Path, seed: int) -> None:
 
     qwen = ("<|im_start|>", "<|im_end|>", "<|vision_start|>", "<|vision_end|>", "<|image_pad|>", "<|video_pad|>")
     tok = family_tokenizer(bos=None, eos="<|im_end|>", pad="<|endoftext|>", specials=qwen)
-    image, video, start, end = _ids(tok, "<|image_pad|>", "<|video_pad|>", "<|vision_start|>", "<|vision_end|>")
+    image, video, start, end = token_ids(tok, "<|image_pad|>", "<|video_pad|>", "<|vision_start|>", "<|vision_end|>")
     rope = {"rope_type": "default", "rope_theta": 5_000_000.0, "mrope_section": [2, 3, 3], "mrope_interleaved": True}
     config = Qwen3VLConfig(
-        text_config=_text(tok, eos="<|im_end|>", head_dim=16, rope_parameters=rope),
+        text_config=tiny_text_config(tok, eos="<|im_end|>", head_dim=16, rope_parameters=rope),
         vision_config=dict(
             depth=2,
             hidden_size=32,
@@ -143,7 +58,7 @@ def save_qwen3_vl(out: Path, seed: int) -> None:
         vision_end_token_id=end,
         tie_word_embeddings=False,
     )
-    _save_model(out, Qwen3VLForConditionalGeneration, config, tok, ("<|im_end|>", "<|endoftext|>"), seed)
+    save_model(out, Qwen3VLForConditionalGeneration, config, tok, ("<|im_end|>", "<|endoftext|>"), seed)
     image_processor = Qwen2VLImageProcessorPil(
         patch_size=16,
         merge_size=2,
@@ -152,7 +67,7 @@ def save_qwen3_vl(out: Path, seed: int) -> None:
         image_std=[0.5, 0.5, 0.5],
         size={"shortest_edge": 65536, "longest_edge": 16777216},
     )
-    _save_pieces(out, tok, image_processor, "Qwen3VLProcessor", chat_template("qwen3-vl"))
+    save_pieces(out, tok, image_processor, "Qwen3VLProcessor", chat_template("qwen3-vl"))
 
 
 # ------------------------------------------------------------------------------------------------ Gemma 3
@@ -168,8 +83,8 @@ def save_gemma3(out: Path, seed: int) -> None:
     tok = family_tokenizer(
         bos="<bos>", eos="<eos>", pad="<pad>", specials=("<start_of_turn>", "<end_of_turn>"), named=named
     )
-    image, boi, eoi = _ids(tok, *named.values())
-    text = _text(
+    image, boi, eoi = token_ids(tok, *named.values())
+    text = tiny_text_config(
         tok,
         eos="<eos>",
         head_dim=16,
@@ -197,7 +112,7 @@ def save_gemma3(out: Path, seed: int) -> None:
         eoi_token_index=eoi,
         tie_word_embeddings=True,
     )
-    _save_model(out, Gemma3ForConditionalGeneration, config, tok, ("<end_of_turn>", "<eos>"), seed)
+    save_model(out, Gemma3ForConditionalGeneration, config, tok, ("<end_of_turn>", "<eos>"), seed)
     image_processor = Gemma3ImageProcessorPil(
         size={"height": 224, "width": 224},
         image_mean=[0.5, 0.5, 0.5],
@@ -205,7 +120,7 @@ def save_gemma3(out: Path, seed: int) -> None:
         resample=2,  # bilinear, as published
         do_pan_and_scan=False,
     )
-    _save_pieces(out, tok, image_processor, "Gemma3Processor", chat_template("gemma3"), image_seq_length=256)
+    save_pieces(out, tok, image_processor, "Gemma3Processor", chat_template("gemma3"), image_seq_length=256)
 
 
 # ------------------------------------------------------------------------------------------------ Idefics3 (SmolVLM)
@@ -225,9 +140,9 @@ def save_idefics3(out: Path, seed: int) -> None:
     rows_cols = tuple(f"<row_{i + 1}_col_{j + 1}>" for i in range(6) for j in range(6))
     specials = ("<fake_token_around_image>", "<image>", "<end_of_utterance>", "<global-img>", *rows_cols)
     tok = family_tokenizer(bos="<|im_start|>", eos="<end_of_utterance>", pad="<|im_end|>", specials=specials)
-    [image] = _ids(tok, "<image>")
+    [image] = token_ids(tok, "<image>")
     config = Idefics3Config(
-        text_config=dict(model_type="llama", **_text(tok, eos="<end_of_utterance>")),
+        text_config=dict(model_type="llama", **tiny_text_config(tok, eos="<end_of_utterance>")),
         vision_config=dict(
             hidden_size=32,
             intermediate_size=64,
@@ -240,7 +155,7 @@ def save_idefics3(out: Path, seed: int) -> None:
         image_token_id=image,
         tie_word_embeddings=False,
     )
-    _save_model(out, Idefics3ForConditionalGeneration, config, tok, ("<end_of_utterance>",), seed)
+    save_model(out, Idefics3ForConditionalGeneration, config, tok, ("<end_of_utterance>",), seed)
     image_processor = Idefics3ImageProcessorPil(
         do_image_splitting=False,
         size={"longest_edge": 2048},
@@ -249,7 +164,7 @@ def save_idefics3(out: Path, seed: int) -> None:
         image_std=[0.5, 0.5, 0.5],
         resample=1,  # LANCZOS, as published
     )
-    _save_pieces(out, tok, image_processor, "Idefics3Processor", chat_template("idefics3"), image_seq_len=64)
+    save_pieces(out, tok, image_processor, "Idefics3Processor", chat_template("idefics3"), image_seq_len=64)
 
 
 # ------------------------------------------------------------------------------------------------ InternVL
@@ -269,9 +184,9 @@ def save_internvl(out: Path, seed: int) -> None:
         "video_token": "<video>",
     }
     tok = family_tokenizer(bos=None, eos="<|im_end|>", pad="<|endoftext|>", specials=qwen, named=named)
-    [image] = _ids(tok, "<IMG_CONTEXT>")
+    [image] = token_ids(tok, "<IMG_CONTEXT>")
     config = InternVLConfig(
-        text_config=dict(model_type="qwen2", **_text(tok, eos="<|im_end|>")),
+        text_config=dict(model_type="qwen2", **tiny_text_config(tok, eos="<|im_end|>")),
         vision_config=dict(
             hidden_size=32,
             intermediate_size=64,
@@ -286,7 +201,7 @@ def save_internvl(out: Path, seed: int) -> None:
         downsample_ratio=0.5,
         tie_word_embeddings=False,
     )
-    _save_model(out, InternVLForConditionalGeneration, config, tok, ("<|im_end|>", "<|endoftext|>"), seed)
+    save_model(out, InternVLForConditionalGeneration, config, tok, ("<|im_end|>", "<|endoftext|>"), seed)
     image_processor = GotOcr2ImageProcessorPil(
         size={"height": 448, "width": 448},
         image_mean=[0.485, 0.456, 0.406],
@@ -295,7 +210,7 @@ def save_internvl(out: Path, seed: int) -> None:
         min_patches=1,
         max_patches=12,
     )
-    _save_pieces(out, tok, image_processor, "InternVLProcessor", chat_template("internvl"), image_seq_length=256)
+    save_pieces(out, tok, image_processor, "InternVLProcessor", chat_template("internvl"), image_seq_length=256)
 
 
 # ------------------------------------------------------------------------------------------------ LLaVA-OneVision
@@ -319,9 +234,9 @@ def save_llava_onevision(out: Path, seed: int) -> None:
     qwen = ("<|im_start|>", "<|im_end|>")
     named = {"image_token": "<image>", "video_token": "<video>"}
     tok = family_tokenizer(bos=None, eos="<|im_end|>", pad="<|endoftext|>", specials=qwen, named=named)
-    image, video = _ids(tok, "<image>", "<video>")
+    image, video = token_ids(tok, "<image>", "<video>")
     config = LlavaOnevisionConfig(
-        text_config=dict(model_type="qwen2", **_text(tok, eos="<|im_end|>")),
+        text_config=dict(model_type="qwen2", **tiny_text_config(tok, eos="<|im_end|>")),
         vision_config=dict(
             model_type="siglip_vision_model",
             hidden_size=32,
@@ -340,7 +255,7 @@ def save_llava_onevision(out: Path, seed: int) -> None:
         image_grid_pinpoints=ONEVISION_PINPOINTS,
         tie_word_embeddings=False,
     )
-    _save_model(out, LlavaOnevisionForConditionalGeneration, config, tok, ("<|im_end|>", "<|endoftext|>"), seed)
+    save_model(out, LlavaOnevisionForConditionalGeneration, config, tok, ("<|im_end|>", "<|endoftext|>"), seed)
     image_processor = LlavaOnevisionImageProcessorPil(
         size={"height": 384, "width": 384},
         image_grid_pinpoints=ONEVISION_PINPOINTS,
@@ -349,7 +264,7 @@ def save_llava_onevision(out: Path, seed: int) -> None:
         resample=3,  # bicubic, as published
         do_pad=True,
     )
-    _save_pieces(
+    save_pieces(
         out,
         tok,
         image_processor,
@@ -373,9 +288,9 @@ def save_mistral3(out: Path, seed: int) -> None:
 
     specials = ("[INST]", "[/INST]", "[SYSTEM_PROMPT]", "[/SYSTEM_PROMPT]", "[IMG]", "[IMG_BREAK]", "[IMG_END]")
     tok = family_tokenizer(bos="<s>", eos="</s>", pad="<pad>", specials=specials)
-    [image] = _ids(tok, "[IMG]")
+    [image] = token_ids(tok, "[IMG]")
     config = Mistral3Config(
-        text_config=dict(model_type="mistral", **_text(tok, eos="</s>", head_dim=16, sliding_window=None)),
+        text_config=dict(model_type="mistral", **tiny_text_config(tok, eos="</s>", head_dim=16, sliding_window=None)),
         vision_config=dict(
             model_type="pixtral",
             hidden_size=32,
@@ -391,14 +306,14 @@ def save_mistral3(out: Path, seed: int) -> None:
         multimodal_projector_bias=False,
         tie_word_embeddings=False,
     )
-    _save_model(out, Mistral3ForConditionalGeneration, config, tok, ("</s>",), seed)
+    save_model(out, Mistral3ForConditionalGeneration, config, tok, ("</s>",), seed)
     image_processor = PixtralImageProcessorPil(
         size={"longest_edge": 1540},
         patch_size={"height": 14, "width": 14},
         image_mean=[0.48145466, 0.4578275, 0.40821073],
         image_std=[0.26862954, 0.26130258, 0.27577711],
     )
-    _save_pieces(
+    save_pieces(
         out, tok, image_processor, "PixtralProcessor", chat_template("mistral3"), patch_size=14, spatial_merge_size=2
     )
 
@@ -417,10 +332,10 @@ def save_glm4v(out: Path, seed: int) -> None:
     named = {"image_token": "<|image|>", "video_token": "<|video|>"}
     ends = ("<|endoftext|>", "<|user|>", "<|observation|>")
     tok = family_tokenizer(bos=None, eos="<|endoftext|>", pad="<|endoftext|>", specials=glm + vision, named=named)
-    image, video, start, end, vstart, vend = _ids(tok, "<|image|>", "<|video|>", *vision)
+    image, video, start, end, vstart, vend = token_ids(tok, "<|image|>", "<|video|>", *vision)
     rope = {"rope_type": "default", "rope_theta": 10_000.0, "mrope_section": [2, 1, 1], "partial_rotary_factor": 0.5}
     config = Glm4vConfig(
-        text_config=_text(tok, eos="<|endoftext|>", rope_parameters=rope),
+        text_config=tiny_text_config(tok, eos="<|endoftext|>", rope_parameters=rope),
         vision_config=dict(
             depth=2,
             hidden_size=32,
@@ -440,7 +355,7 @@ def save_glm4v(out: Path, seed: int) -> None:
         video_end_token_id=vend,
         tie_word_embeddings=False,
     )
-    _save_model(out, Glm4vForConditionalGeneration, config, tok, ends, seed)
+    save_model(out, Glm4vForConditionalGeneration, config, tok, ends, seed)
     image_processor = Glm4vImageProcessorPil(
         size={"shortest_edge": 12544, "longest_edge": 9633792},
         patch_size=14,
@@ -449,7 +364,7 @@ def save_glm4v(out: Path, seed: int) -> None:
         image_mean=[0.48145466, 0.4578275, 0.40821073],
         image_std=[0.26862954, 0.26130258, 0.27577711],
     )
-    _save_pieces(out, tok, image_processor, "Glm4vProcessor", chat_template("glm4v"))
+    save_pieces(out, tok, image_processor, "Glm4vProcessor", chat_template("glm4v"))
 
 
 # ------------------------------------------------------------------------------------------------ Mllama
@@ -470,9 +385,9 @@ def save_mllama(out: Path, seed: int) -> None:
     named = {"image_token": "<|image|>"}
     bos, pad = "<|begin_of_text|>", "<|finetune_right_pad_id|>"
     tok = family_tokenizer(bos=bos, eos="<|eot_id|>", pad=pad, specials=specials, named=named)
-    [image] = _ids(tok, "<|image|>")
+    [image] = token_ids(tok, "<|image|>")
     config = MllamaConfig(
-        text_config=dict(**_text(tok, eos="<|eot_id|>"), cross_attention_layers=[1]),
+        text_config=dict(**tiny_text_config(tok, eos="<|eot_id|>"), cross_attention_layers=[1]),
         vision_config=dict(
             hidden_size=32,
             intermediate_size=64,
@@ -488,14 +403,14 @@ def save_mllama(out: Path, seed: int) -> None:
         ),
         image_token_index=image,
     )
-    _save_model(out, MllamaForConditionalGeneration, config, tok, ("<|eot_id|>", "<|end_of_text|>"), seed)
+    save_model(out, MllamaForConditionalGeneration, config, tok, ("<|eot_id|>", "<|end_of_text|>"), seed)
     image_processor = MllamaImageProcessorPil(
         size={"height": 560, "width": 560},
         max_image_tiles=4,
         image_mean=[0.48145466, 0.4578275, 0.40821073],
         image_std=[0.26862954, 0.26130258, 0.27577711],
     )
-    _save_pieces(out, tok, image_processor, "MllamaProcessor", chat_template("mllama"))
+    save_pieces(out, tok, image_processor, "MllamaProcessor", chat_template("mllama"))
 
 
 BUILDERS: dict[str, Callable[[Path, int], None]] = {
