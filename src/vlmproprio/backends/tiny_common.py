@@ -15,7 +15,7 @@ from pathlib import Path
 from vlmproprio.backends.tiny import _generation_config, _text_config, train_bpe
 
 TEMPLATES = Path(__file__).with_name("chat_templates")
-CONTEXT = 32768  # text positions: Process 3 of a 31-frame episode at 256-300 tokens a frame is ~10k tokens
+CONTEXT = 32768  # text positions: Process 3 of the 31-frame fixture episode is at most ~14k tokens (Gemma 3)
 
 
 def chat_template(family: str) -> str:
