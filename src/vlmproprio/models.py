@@ -29,6 +29,17 @@ from vlmproprio.kinds import kind_spec, kind_specs
 TINY_PREFIX = "tiny:"
 STATE_RULES = "state-aware rules, NOT a VLM"  # the "weights" of `reference-state`, as `vlmproprio models` shows them
 DEFAULT_CASSETTE_DIR = Path("fixtures") / "responses"
+# The tiny families built by vlmproprio.backends.tiny_families, with the name their registry entry shows.
+TINY_FAMILY_LABELS: dict[str, str] = {
+    "qwen3-vl": "Qwen3-VL",
+    "gemma3": "Gemma 3",
+    "idefics3": "Idefics3 (SmolVLM)",
+    "internvl": "InternVL",
+    "llava-onevision": "LLaVA-OneVision",
+    "mistral3": "Mistral 3",
+    "glm4v": "GLM-4.1V",
+    "mllama": "Mllama (Llama 3.2 Vision)",
+}
 MAX_NAME_LEN = 200
 _SLUG_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}$")
 _DIGEST_TAIL = re.compile(r"-[0-9a-f]{8}$")
@@ -91,6 +102,49 @@ REGISTRY: dict[str, ModelRef] = {
             "LLaVA-OneVision 0.5B (transformers port), open weights",
         ),
         _registered(
+            "llava-onevision-7b",
+            "hf",
+            "llava-hf/llava-onevision-qwen2-7b-ov-hf",
+            "LLaVA-OneVision 7B (transformers port), open weights",
+        ),
+        # The families of tiny_families, at their published sizes (docs/models.md: what a frame costs in each,
+        # whether Process 3 fits the context, and what needs torchvision)
+        _registered("qwen3-vl", "hf", "Qwen/Qwen3-VL-2B-Instruct", "Qwen3-VL 2B Instruct, open weights"),
+        _registered("qwen3-vl-4b", "hf", "Qwen/Qwen3-VL-4B-Instruct", "Qwen3-VL 4B Instruct, open weights"),
+        _registered("gemma3", "hf", "google/gemma-3-4b-it", "Gemma 3 4B instruction-tuned, open weights (gated)"),
+        _registered("gemma3-12b", "hf", "google/gemma-3-12b-it", "Gemma 3 12B instruction-tuned, open weights (gated)"),
+        _registered(
+            "smolvlm", "hf", "HuggingFaceTB/SmolVLM-256M-Instruct", "SmolVLM 256M Instruct (Idefics3), open weights"
+        ),
+        _registered(
+            "smolvlm-2.2b", "hf", "HuggingFaceTB/SmolVLM-Instruct", "SmolVLM 2.2B Instruct (Idefics3), open weights"
+        ),
+        _registered("internvl3", "hf", "OpenGVLab/InternVL3-1B-hf", "InternVL3 1B (transformers port), open weights"),
+        _registered(
+            "internvl3-2b", "hf", "OpenGVLab/InternVL3-2B-hf", "InternVL3 2B (transformers port), open weights"
+        ),
+        _registered(
+            "mistral3",
+            "hf",
+            "mistralai/Mistral-Small-3.1-24B-Instruct-2503",
+            "Mistral Small 3.1 24B Instruct (Mistral 3), open weights; needs torchvision",
+        ),
+        _registered("glm4v", "hf", "zai-org/GLM-4.1V-9B-Thinking", "GLM-4.1V 9B Thinking, open weights"),
+        _registered(
+            "mllama",
+            "hf",
+            "meta-llama/Llama-3.2-11B-Vision-Instruct",
+            "Llama 3.2 11B Vision Instruct (Mllama), open weights (gated)",
+        ),
+        _registered(
+            "mllama-90b",
+            "hf",
+            "meta-llama/Llama-3.2-90B-Vision-Instruct",
+            "Llama 3.2 90B Vision Instruct (Mllama), open weights (gated)",
+        ),
+        _registered("lfm2-vl", "hf", "LiquidAI/LFM2-VL-450M", "LFM2-VL 450M, open weights; needs torchvision"),
+        _registered("lfm2-vl-1.6b", "hf", "LiquidAI/LFM2-VL-1.6B", "LFM2-VL 1.6B, open weights; needs torchvision"),
+        _registered(
             "gpt-4v",
             "openai",
             "gpt-4-vision-preview",
@@ -104,6 +158,12 @@ REGISTRY: dict[str, ModelRef] = {
             "tiny-qwen2.5-vl", "hf", TINY_PREFIX + "qwen2.5-vl", "tiny random Qwen2.5-VL built locally; tests only", 64
         ),
         _registered("tiny-llava", "hf", TINY_PREFIX + "llava", "tiny random LLaVA built locally; tests only", 64),
+        *(
+            _registered(
+                f"tiny-{family}", "hf", TINY_PREFIX + family, f"tiny random {label} built locally; tests only", 64
+            )
+            for family, label in TINY_FAMILY_LABELS.items()
+        ),
         _registered(
             "reference",
             "reference",

@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from vlmproprio.backends.base import Availability, Backend, BackendError
+from vlmproprio.backends.hf_families import missing_library_message, processor_images
 from vlmproprio.backends.hf_files import hf_weights_available, load_processor, resolve_weights
 from vlmproprio.backends.hf_tokens import PromptTokenCounter
 from vlmproprio.backends.scheduling import RequestShape, plan_batches, round_up
@@ -172,7 +173,9 @@ class HFBackend(Backend):
             if self.device == "auto":
                 kwargs["device_map"] = "auto"  # accelerate spreads the layers over what is there
             model = AutoModelForImageTextToText.from_pretrained(path, **kwargs)
-        except (OSError, ValueError, ImportError) as exc:
+        except ImportError as exc:
+            raise BackendError(missing_library_message(self.weights.model_id, path, exc)) from exc
+        except (OSError, ValueError) as exc:
             raise BackendError(f"cannot load {self.weights.model_id} from {path}: {type(exc).__name__}: {exc}") from exc
         if self.device != "auto":
             model = model.to(self.device)
@@ -290,8 +293,8 @@ class HFBackend(Backend):
         self.load()
         cfg = requests[0].config
         texts = [self._chat_text(r) for r in requests]
-        images = [_decode_image(img, r) for r in requests for img in r.images]
-        inputs = self.processor(images=images or None, text=texts, padding=True, return_tensors="pt")
+        images = processor_images(self.processor, [[_decode_image(img, r) for img in r.images] for r in requests])
+        inputs = self.processor(images=images, text=texts, padding=True, return_tensors="pt")
         target = self.model.device
         inputs = {
             k: (v.to(target, dtype=self.model.dtype) if torch.is_floating_point(v) else v.to(target))

@@ -1,8 +1,10 @@
 """Tiny random vision-language checkpoints, built offline and bit-for-bit reproducibly, for tests and CI.
 
-Three families with the real architectures and processors but a few hundred
-thousand random parameters: ``qwen2-vl`` (Qwen2VLForConditionalGeneration),
-``qwen2.5-vl`` and ``llava`` (a CLIP vision tower on a Qwen2 language model).
+Families with the real architectures and processors but a few hundred thousand random parameters
+(``FAMILIES``). Built here: ``qwen2-vl`` (Qwen2VLForConditionalGeneration), ``qwen2.5-vl`` and ``llava`` (a
+CLIP vision tower on a Qwen2 language model); the others (Qwen3-VL, Gemma 3, Idefics3, InternVL,
+LLaVA-OneVision, Mistral 3, GLM-4.1V, Mllama) by vlmproprio.backends.tiny_families, with their chat templates
+as data files (docs/models.md lists them and what each keeps of the published geometry).
 The tokenizer is a byte-level BPE trained here on synthetic robot-prompt text,
 with the Qwen2 pre-tokenizer and special tokens; the chat templates follow the
 real models' (written from their published logic, an approximation). The
@@ -32,7 +34,20 @@ from pathlib import Path
 from vlmproprio.backends.base import BackendError
 from vlmproprio.episodes import sha256_file
 
-FAMILIES: tuple[str, ...] = ("qwen2-vl", "qwen2.5-vl", "llava")
+# The first three are built here; the others by vlmproprio.backends.tiny_families (same tokenizer, sizes, layout).
+FAMILIES: tuple[str, ...] = (
+    "qwen2-vl",
+    "qwen2.5-vl",
+    "llava",
+    "qwen3-vl",
+    "gemma3",
+    "idefics3",
+    "internvl",
+    "llava-onevision",
+    "mistral3",
+    "glm4v",
+    "mllama",
+)
 BUILD_VERSION = 2  # 2: the LLaVA build's context holds Process 3 at the image cap
 STAMP_FILE = "vlmproprio-tiny.json"
 
@@ -100,10 +115,10 @@ def _corpus(seed: int, n: int = 4000) -> Iterator[str]:
             yield f"# Process {rng.randint(1, 3)}\nFrame {rng.randint(1, 5)}: " + " ".join(rng.sample(words, 6))
 
 
-def build_tokenizer(seed: int = 0, vocab_size: int = 1024):
-    """A Qwen2 tokenizer (byte-level BPE, no unknown tokens) trained on ``_corpus``."""
+def train_bpe(seed: int = 0, vocab_size: int = 1024) -> tuple[dict[str, int], list[tuple[str, str]]]:
+    """The vocabulary and merges of a byte-level BPE (no unknown tokens) trained on ``_corpus``, with the Qwen2
+    pre-tokenizer; ``SPECIAL_TOKENS`` are its ids 0..6."""
     from tokenizers import Regex, Tokenizer, decoders, models, normalizers, pre_tokenizers, trainers
-    from transformers import Qwen2Tokenizer
 
     bpe = Tokenizer(models.BPE())
     bpe.normalizer = normalizers.NFC()
@@ -124,8 +139,16 @@ def build_tokenizer(seed: int = 0, vocab_size: int = 1024):
     merges = [
         tuple(m) if isinstance(m, list) else tuple(m.split(" ")) for m in json.loads(bpe.to_str())["model"]["merges"]
     ]
+    return bpe.get_vocab(), merges
+
+
+def build_tokenizer(seed: int = 0, vocab_size: int = 1024):
+    """A Qwen2 tokenizer (byte-level BPE, no unknown tokens) trained on ``_corpus``."""
+    from transformers import Qwen2Tokenizer
+
+    vocab, merges = train_bpe(seed, vocab_size)
     tok = Qwen2Tokenizer(
-        vocab=bpe.get_vocab(),
+        vocab=vocab,
         merges=merges,
         unk_token=None,
         eos_token="<|im_end|>",
@@ -282,8 +305,12 @@ def build_tiny_model(family: str, out_dir: Path | str, *, seed: int = 0) -> Path
     os.environ.setdefault("HF_HUB_OFFLINE", "1")
     if family == "llava":
         _save_llava(out, seed)
-    else:
+    elif family in ("qwen2-vl", "qwen2.5-vl"):
         _save_qwen(out, family, seed)
+    else:
+        from vlmproprio.backends.tiny_families import BUILDERS
+
+        BUILDERS[family](out, seed)
     for p in out.rglob("*"):  # save_pretrained writes some files 0600; the same mode everywhere keeps builds equal
         if p.is_file():
             p.chmod(0o644)

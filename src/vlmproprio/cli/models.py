@@ -53,6 +53,8 @@ def add_models(sub) -> None:
 
 def add_make_tiny_model(sub) -> None:
     p = command(sub, "make-tiny-model", cmd_make_tiny_model)
-    p.add_argument("--family", required=True, help="qwen2-vl, qwen2.5-vl or llava")
+    from vlmproprio.backends.tiny import FAMILIES  # names only: the module imports no heavy library
+
+    p.add_argument("--family", required=True, help=", ".join(FAMILIES) + " (docs/models.md)")
     p.add_argument("--out", type=Path, required=True, help="output folder")
     p.add_argument("--seed", type=int, default=0)
