@@ -45,7 +45,7 @@ from vlmproprio.episodes.types import (
     TargetBin,
     check_episode_id,
 )
-from vlmproprio.io import JSONLoadError, atomic_write_bytes, atomic_write_text, load_json
+from vlmproprio.io import JSONLoadError, ReadError, atomic_write_bytes, atomic_write_text, load_json, read_npz
 
 
 @dataclass(frozen=True)
@@ -148,12 +148,26 @@ def write_steps(path: Path, states: StepStates) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
+# the arrays of steps.npz and the numpy dtype kinds each may have: integers (i, u) or, for states, floats too
+_STEP_KINDS = {"step": "iu", "joints": "iuf", "ee": "iuf", "phase": "iu", "direction": "iu"}
+
+
 def read_steps(path: Path) -> StepStates:
     try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in ("step", "joints", "ee", "phase", "direction")}
-    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
-        raise EpisodeError(f"{path}: cannot read full-rate states ({exc})") from exc
+        stored = read_npz(path)
+    except FileNotFoundError as exc:
+        raise EpisodeError(f"{path}: cannot read full-rate states (missing)") from exc
+    except ReadError as exc:
+        raise EpisodeError(f"{path}: cannot read full-rate states ({exc.detail})") from exc
+    missing = [k for k in _STEP_KINDS if k not in stored]
+    if missing:
+        raise EpisodeError(f"{path}: cannot read full-rate states (no {', '.join(missing)} array)")
+    arrays = {k: stored[k] for k in _STEP_KINDS}
+    for k, kinds in _STEP_KINDS.items():  # a string or object array would fail later with a Python error
+        if arrays[k].dtype.kind not in kinds:
+            raise EpisodeError(f"{path}: {k} holds {arrays[k].dtype} values, expected numbers ({kinds})")
+    if arrays["step"].ndim != 1:
+        raise EpisodeError(f"{path}: step has shape {arrays['step'].shape}, expected one number per step")
     n = len(arrays["step"])
     shapes = {"joints": (n, JOINT_DIM), "ee": (n, EE_DIM), "phase": (n,), "direction": (n,)}
     for k, shape in shapes.items():
