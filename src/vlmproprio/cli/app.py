@@ -9,7 +9,7 @@ from collections.abc import Callable, Sequence
 
 from vlmproprio.cli.console import ScrubbingStream, scrub_log_records
 from vlmproprio.cli.parser import build_parser
-from vlmproprio.errors import VlmproprioError
+from vlmproprio.errors import VlmproprioError, one_line
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -90,7 +90,7 @@ def _main(argv: Sequence[str] | None) -> int:
 
             print(scrub(traceback.format_exc()), end="", file=sys.stderr)
             return 1 if not isinstance(exc, VlmproprioError) else 2
-        print(f"vlmproprio: error: {scrub(str(exc))}", file=sys.stderr)
+        print(f"vlmproprio: error: {one_line(scrub(str(exc)))}", file=sys.stderr)
         return 2
     finally:
         sys.stdout, sys.stderr = out, err

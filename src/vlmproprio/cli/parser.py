@@ -6,6 +6,7 @@ import argparse
 from collections.abc import Callable
 from pathlib import Path
 
+from vlmproprio.cli.arguments import path_argument
 from vlmproprio.cli.cassette import add_cassette
 from vlmproprio.cli.fixtures import add_export_dataset, add_fixture_commands, add_import_demos
 from vlmproprio.cli.models import add_make_tiny_model, add_models
@@ -15,6 +16,7 @@ from vlmproprio.cli.run import add_run, add_show
 from vlmproprio.cli.score import add_score
 from vlmproprio.cli.texts import MAINTAINER_COMMANDS
 from vlmproprio.conditions import CONTROLS, PAPER_CONDITIONS
+from vlmproprio.errors import one_line
 
 EPILOG = """\
 typical use:
@@ -50,8 +52,16 @@ _SUBCOMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
 )
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, whose usage errors escape control characters (a value holding a newline stays one
+    line); its sub-command parsers are of this class too."""
+
+    def error(self, message: str):
+        super().error(one_line(message))
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="vlmproprio",
         description="Does proprioception make a VLM's captions and subtask segmentations of robot "
         f"episodes better? Record episodes, caption them with a model under {_count(PAPER_CONDITIONS)} state "
@@ -65,6 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
     for add in _SUBCOMMANDS:
         add(sub)
     _uniform_metavars(parser)
+    _refuse_empty_paths(parser)
     return parser
 
 
@@ -106,3 +117,13 @@ def _uniform_metavars(parser: argparse.ArgumentParser) -> None:
                 _uniform_metavars(sub)
         elif action.option_strings and action.nargs != 0 and action.metavar is None and not action.choices:
             action.metavar = _metavar_of(action)
+
+
+def _refuse_empty_paths(parser: argparse.ArgumentParser) -> None:
+    """Every option and positional argument of type ``Path`` takes ``path_argument`` instead: one rule for all."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _refuse_empty_paths(sub)
+        elif action.type is Path:
+            action.type = path_argument
