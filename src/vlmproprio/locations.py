@@ -65,14 +65,15 @@ def _existing_folder(path: Path, given_by: str) -> Path:
     return path
 
 
-def resolve_fixtures(explicit: Path | str | None = None, *, must_exist: bool = True) -> Path:
+def resolve_fixtures(explicit: Path | str | None = None, *, must_exist: bool = True, flag: str = "--fixtures") -> Path:
     """The fixture folder to use: explicit, else $VLMPROPRIO_FIXTURES, else the repository's, else the checkout's.
 
     ``must_exist=False`` is for commands that create fixtures (record, manifest): an explicit or environment
-    folder is returned even if it is not there yet.
+    folder is returned even if it is not there yet; otherwise one that is not a folder is a UsageError naming
+    ``flag`` (the option that gave ``explicit``) or the variable.
     """
     if explicit is not None and str(explicit) != "":
-        return _existing_folder(Path(explicit), "--fixtures") if must_exist else Path(explicit)
+        return _existing_folder(Path(explicit), flag) if must_exist else Path(explicit)
     env = os.environ.get(FIXTURES_ENV)
     if env:
         return _existing_folder(Path(env), f"${FIXTURES_ENV}") if must_exist else Path(env)

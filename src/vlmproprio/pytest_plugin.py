@@ -265,9 +265,12 @@ def _session(config: pytest.Config) -> BenchSession:
         # the repository pytest runs in: `pytest /path/to/repo/benchmark` finds its fixtures from any folder
         explicit = find_repository_fixtures(Path(config.rootpath))
     try:
-        fixtures = resolve_fixtures(explicit)
+        fixtures = resolve_fixtures(explicit, flag="--fixtures-dir")
     except VlmproprioError as exc:
-        raise pytest.UsageError(f"--fixtures-dir: {exc}") from None
+        message = str(exc)
+        raise pytest.UsageError(
+            message if message.startswith("--fixtures-dir") else f"--fixtures-dir: {message}"
+        ) from None
     episodes_opt = option(config, "episodes")
     episodes = tuple(opt.split_list(episodes_opt))
     if episodes_opt is not None and not episodes:  # `--episodes ""` (an empty shell variable) is not "all"
