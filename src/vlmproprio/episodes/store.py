@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from vlmproprio.episodes import pixels
-from vlmproprio.episodes.manifest import read_manifest, verify_files
+from vlmproprio.episodes.manifest import check_no_links, read_manifest, verify_files
 from vlmproprio.episodes.pixels import decode_rgb, read_checked_png
 from vlmproprio.episodes.types import (
     EE_DIM,
@@ -371,6 +371,7 @@ def load_episodes(root: Path, episode_ids: Sequence[str] | None = None, *, verif
         # an extra episode folder is an error too, not something to skip silently
         listed = {k.split("/")[1] for k in manifest if k.startswith("episodes/")}
         for eid in list_episode_ids(root):
+            check_no_links(root, root / "episodes" / eid)  # the rule manifest and verify apply
             if eid not in listed:
                 raise EpisodeError(f"{root / 'episodes' / eid}: extra episode, not in {root / MANIFEST_NAME}")
     ids = list(episode_ids) if episode_ids is not None else list_episode_ids(root)
