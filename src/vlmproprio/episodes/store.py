@@ -17,6 +17,7 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
 import zipfile
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field, fields
@@ -338,8 +339,8 @@ def check_steps(episode: Episode) -> None:
     """steps.npz must agree with episode.json: one row per sim step, and at each sampled frame's step the
     same joints, end-effector pose and phase."""
     path = episode.root / STEPS_FILE
-    if not path.is_file():  # an episode without full-rate states (the manifest says whether one is missing)
-        return
+    if not os.path.lexists(path):  # an episode without full-rate states (the manifest says whether one is missing);
+        return  # anything else by that name (a folder, a FIFO) is read, and refused by read_npz
     states = episode.step_states
     n = len(states.step)
     if n != episode.steps + 1 or not np.array_equal(states.step, np.arange(n)):
