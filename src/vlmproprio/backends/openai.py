@@ -316,7 +316,7 @@ class OpenAIBackend(Backend):
                     401: "check the API key in $" + self.settings.api_key_env,
                     403: "the key may lack access to this model",
                     404: f"does the server serve model {self.model!r}?",
-                    429: "rate limited; lower --concurrency or wait",
+                    429: "lower --concurrency or wait",
                 }.get(exc.status_code, "")
                 retried = self._tries_phrase(exc.response, attempts)
                 raise BackendError(
