@@ -71,7 +71,7 @@ OUR_FRAME = re.compile(r'File "[^"]*vlmproprio/(?!__init__\.py")[^"]*"')
 
 
 def test_ctrl_c_at_any_moment_of_start_up_is_one_line(tmp_path, figures):
-    outcomes = {"one line": 0, "before python": 0, "python's start-up": 0, "finished": 0}
+    outcomes = {"one_line": 0, "before_python": 0, "in_python_start_up": 0, "finished": 0}
     for i in range(40):
         proc = subprocess.Popen(
             cli_command(["models"]), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=cli_env()
@@ -79,18 +79,20 @@ def test_ctrl_c_at_any_moment_of_start_up_is_one_line(tmp_path, figures):
         time.sleep(i * 0.01)  # 0 to 0.4 s: the interpreter's start and the import of every command module
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=120)
-        if proc.returncode == 130:
-            assert err.strip() == "vlmproprio: interrupted", err
-            outcomes["one line"] += 1
+        if err.strip() == "vlmproprio: interrupted":
+            # 130, or killed by SIGINT (what a shell also shows as 130): CPython ends that way once an interrupt
+            # has gone through some extension's initialisation, even one that was caught
+            assert proc.returncode in (130, -signal.SIGINT), proc.returncode
+            outcomes["one_line"] += 1
         elif proc.returncode == 0:
             outcomes["finished"] += 1
         elif "Traceback" in err:  # the interpreter's own start-up, before any line of vlmproprio ran
             assert not OUR_FRAME.search(err), err
-            outcomes["python's start-up"] += 1
+            outcomes["in_python_start_up"] += 1
         else:
             assert proc.returncode == -signal.SIGINT and err == "", (proc.returncode, err)
-            outcomes["before python"] += 1
-    assert outcomes["one line"] >= 10, outcomes  # the window that mattered was hit, many times
+            outcomes["before_python"] += 1
+    assert outcomes["one_line"] >= 10, outcomes  # the window that mattered was hit, many times
     figures(
         "Ctrl-C during start-up (issue 36: 15)", interrupts=40, **{k.replace(" ", "_"): v for k, v in outcomes.items()}
     )
