@@ -311,11 +311,13 @@ def load_json(
 
 def load_required_json(path: Path | str, missing: str, *, error: type[VlmproprioError] = JSONLoadError):
     """``load_json`` of a file that must be there: a missing file is ``error`` too, with the message ``missing``
-    (which says what the file is and what to do), not a FileNotFoundError."""
+    (which says what the file is and what to do), not a FileNotFoundError; it has ``detail`` (that message) too."""
     try:
         return load_json(path, error=error)
     except FileNotFoundError:
-        raise error(missing) from None
+        exc = error(missing)
+        exc.detail = missing  # type: ignore[attr-defined]  # as every error of the reader has
+        raise exc from None
 
 
 def read_npz(

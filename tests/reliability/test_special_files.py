@@ -216,3 +216,38 @@ def test_a_damaged_sidecar_is_named_by_its_file(tmp_path, figures):
     assert line.index(str(sidecar)) < line.find("header.npy") or "header.npy" not in line
     shutil.rmtree(run)
     figures("damaged sidecars (issue 36: 17)", cases=1, named_by_file=1)
+
+
+def _json_over(path: Path) -> Path:
+    path.write_text("{}")
+    with open(path, "r+b") as f:
+        f.truncate(300 << 20)  # sparse: the size, not the bytes
+    return path
+
+
+def _json_folder(path: Path) -> Path:
+    path.mkdir()
+    return path
+
+
+def _json_fifo(path: Path) -> Path:
+    os.mkfifo(path)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("make", "detail"),
+    [(_json_over, "314,572,800 bytes, more than"), (_json_folder, "a folder"), (_json_fifo, "a FIFO")],
+    ids=["over the limit", "a folder", "a FIFO"],
+)
+def test_every_error_of_the_json_reader_has_detail(tmp_path, make, detail):
+    """The callers phrase their own line from ``detail`` (load_episode, read_manifest): every path has it."""
+    from vlmproprio.io import JSONLoadError, load_json, load_required_json
+
+    path = make(tmp_path / "doc.json")
+    with pytest.raises(JSONLoadError) as caught:
+        load_json(path)
+    assert detail in caught.value.detail and str(caught.value) == f"{path}: {caught.value.detail}"
+    with pytest.raises(JSONLoadError) as caught:
+        load_required_json(tmp_path / "absent.json", "absent.json is missing: run X")
+    assert caught.value.detail == "absent.json is missing: run X"
