@@ -84,6 +84,10 @@ def option(config: pytest.Config, name: str):
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    for name in ("run-dir", "fixtures-dir"):  # `--run-dir ""` (an empty shell variable) is not "the default"
+        value = option(config, name)
+        if value is not None and not str(value).strip():
+            raise pytest.UsageError(f"--{name}: an empty path; give a folder, or leave the option out")
     # A wrong --model / --episodes / --conditions / --fixtures-dir is a usage error before collection (one clean
     # line), but only when given.
     if (

@@ -19,6 +19,7 @@ import re
 import shutil
 import signal
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -123,6 +124,18 @@ def test_an_empty_path_is_refused_not_read_as_the_current_folder(tmp_path, fixtu
     proc = cli(EMPTY_PATHS[case], cwd=work, env=cli_env(VLMPROPRIO_CACHE=str(tmp_path / "cache")))
     assert_argparse_error(proc, "an empty")
     assert list(work.iterdir()) == []
+    figures("empty paths (issue 36: 17)", cases=1, usage_errors=1, files_written=0)
+
+
+@pytest.mark.parametrize("flag", ["--run-dir", "--bench-fixtures"])
+def test_an_empty_path_is_a_usage_error_of_the_benchmark_plugin(flag, figures):
+    proc = subprocess.run(
+        [sys.executable, "-m", "pytest", "benchmark/", "-q", "-p", "no:cacheprovider", "--co", flag, ""],
+        cwd=REPO, env=cli_env(), capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 4, out  # pytest's usage error
+    assert "an empty path" in out and "Traceback" not in out
     figures("empty paths (issue 36: 17)", cases=1, usage_errors=1, files_written=0)
 
 
