@@ -251,3 +251,15 @@ def test_every_error_of_the_json_reader_has_detail(tmp_path, make, detail):
     with pytest.raises(JSONLoadError) as caught:
         load_required_json(tmp_path / "absent.json", "absent.json is missing: run X")
     assert caught.value.detail == "absent.json is missing: run X"
+
+
+@pytest.mark.parametrize("command", ["manifest", "verify", "run"])
+def test_a_fifo_among_the_fixture_files_is_named_by_every_command(fixtures, tmp_path, command, figures):
+    frame = fixtures / "episodes/door_00/frames/001.png"
+    frame.unlink()
+    os.mkfifo(frame)  # opened for reading, it would wait for a writer forever
+    args = [command, "--fixtures", fixtures]
+    if command == "run":
+        args += [*RUN, "--out", tmp_path / "run", "--cache-dir", tmp_path / "c"]
+    assert_one_line_error(capped_cli(args), f"{frame}: a FIFO (named pipe) inside the fixture folder")
+    figures("special files refused (issue 36: 11)", cases=1, one_line_errors=1, read_or_written=0)

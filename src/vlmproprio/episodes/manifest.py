@@ -10,7 +10,7 @@ from pathlib import Path
 
 from vlmproprio.digests import file_signature, settled
 from vlmproprio.episodes.types import FORMAT_VERSION, MANIFEST_NAME, EpisodeError
-from vlmproprio.io import JSONLoadError, atomic_write_text, load_json, sha256_file
+from vlmproprio.io import JSONLoadError, atomic_write_text, load_json, sha256_file, special_kind
 
 
 def link_error(path: Path) -> EpisodeError:
@@ -40,6 +40,10 @@ def _fixture_files(root: Path) -> list[str]:
         for name in (*dirs, *names):
             if os.path.islink(here / name) and not name.startswith("."):
                 raise link_error(here / name)
+        for name in names:  # a FIFO or device among the files: named, not taken for a missing file
+            kind = special_kind(here / name)
+            if kind is not None and not name.startswith("."):
+                raise EpisodeError(f"{here / name}: {kind} inside the fixture folder, not a regular file")
         found += [
             (here / n).relative_to(root).as_posix()
             for n in names
