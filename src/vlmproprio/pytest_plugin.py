@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING
 import pytest
 
 from vlmproprio import options as opt
+from vlmproprio.errors import one_line
 from vlmproprio.locations import FIXTURES_ENV
 
 if TYPE_CHECKING:  # annotations only: the work is in vlmproprio.bench, imported when a model runs
@@ -96,10 +97,13 @@ def pytest_configure(config: pytest.Config) -> None:
         or option(config, "conditions")
         or option(config, "fixtures-dir")
     ):
-        _refuse_a_path_pytest_took_for_a_test_path(config)
-        session = _session(config)
-        if option(config, "model") and not config.option.collectonly:  # listing the cells runs none
-            _refuse_unrunnable(session)
+        try:
+            _refuse_a_path_pytest_took_for_a_test_path(config)
+            session = _session(config)
+            if option(config, "model") and not config.option.collectonly:  # listing the cells runs none
+                _refuse_unrunnable(session)
+        except pytest.UsageError as exc:  # one line, as the CLI's: a name with a newline cannot split it
+            raise pytest.UsageError(one_line(str(exc))) from None
 
 
 def _refuse_a_path_pytest_took_for_a_test_path(config: pytest.Config) -> None:

@@ -127,16 +127,28 @@ def test_an_empty_path_is_refused_not_read_as_the_current_folder(tmp_path, fixtu
     figures("empty paths (issue 36: 17)", cases=1, usage_errors=1, files_written=0)
 
 
-@pytest.mark.parametrize("flag", ["--run-dir", "--bench-fixtures"])
-def test_an_empty_path_is_a_usage_error_of_the_benchmark_plugin(flag, figures):
-    proc = subprocess.run(
-        [sys.executable, "-m", "pytest", "benchmark/", "-q", "-p", "no:cacheprovider", "--co", flag, ""],
+def _benchmark(*options: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "pytest", "benchmark/", "-q", "-p", "no:cacheprovider", "--co", *options],
         cwd=REPO, env=cli_env(), capture_output=True, text=True, timeout=120, check=False,
     )  # fmt: skip
+
+
+@pytest.mark.parametrize("flag", ["--run-dir", "--bench-fixtures"])
+def test_an_empty_path_is_a_usage_error_of_the_benchmark_plugin(flag, figures):
+    proc = _benchmark(flag, "")
     out = proc.stdout + proc.stderr
     assert proc.returncode == 4, out  # pytest's usage error
     assert "an empty path" in out and "Traceback" not in out
     figures("empty paths (issue 36: 17)", cases=1, usage_errors=1, files_written=0)
+
+
+def test_the_benchmark_plugin_escapes_control_characters_in_its_usage_error(figures):
+    proc = _benchmark("--episodes", "door_00\nx")
+    assert proc.returncode == 4, proc.stdout + proc.stderr
+    (line,) = [line for line in (proc.stdout + proc.stderr).splitlines() if "unknown episode" in line]
+    assert "door_00\\nx (did you mean" in line
+    figures("control characters in error lines (issue 36: 17)", cases=1, one_line_errors=1)
 
 
 CONTROL = {
