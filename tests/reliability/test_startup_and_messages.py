@@ -66,6 +66,17 @@ def test_a_reader_that_left_ends_the_command_quietly(argv, figures):
     figures("closed pipes (issue 36: 15)", commands=1, quiet_exits=1, tracebacks=0)
 
 
+def test_a_broken_pipe_that_is_not_stdout_is_an_error_not_a_quiet_end(figures):
+    """A socket or a library's pipe that breaks is a failure: only stdout's reader leaving ends quietly."""
+    prelude = (
+        "import vlmproprio.cli.models as m\n"
+        "def broken(args):\n    raise BrokenPipeError(32, 'Broken pipe')\n"
+        "m.cmd_models = broken"
+    )
+    assert_one_line_error(cli(["models"], python_prelude=prelude), "Broken pipe")
+    figures("closed pipes (issue 36: 15)", commands=1, quiet_exits=0, tracebacks=0)
+
+
 # Frames of a traceback that went through vlmproprio's code (its package __init__ installs the handler: the few
 # instructions before that are the interpreter's start-up, as are the frozen importlib frames before it runs).
 OUR_FRAME = re.compile(r'File "[^"]*vlmproprio/(?!__init__\.py")[^"]*"')

@@ -62,6 +62,22 @@ def _flush_quietly(stream) -> None:
         pass
 
 
+def _reader_left(stream) -> bool:
+    """Whether ``stream`` (stdout) is a pipe whose reader has gone: a BrokenPipeError from anything else (a socket
+    a library writes to) is an error to report, not a quiet end."""
+    import select
+
+    try:
+        fd = stream.fileno()
+    except (OSError, ValueError, AttributeError):  # no descriptor (a test's captured stream): assume it was ours
+        return True
+    if not hasattr(select, "poll"):
+        return True
+    poller = select.poll()
+    poller.register(fd, select.POLLOUT)
+    return any(events & (select.POLLERR | select.POLLHUP) for _, events in poller.poll(0))
+
+
 def _main(argv: Sequence[str] | None) -> int:
     from vlmproprio.io import is_write_failure, write_error
     from vlmproprio.secrets import scrub
@@ -79,9 +95,11 @@ def _main(argv: Sequence[str] | None) -> int:
         result = func(args)
         sys.stdout.flush()  # a reader that left shows here, inside the handlers below
         return result
-    except (KeyboardInterrupt, BrokenPipeError):
+    except KeyboardInterrupt:
         raise  # main's
     except Exception as exc:
+        if isinstance(exc, BrokenPipeError) and _reader_left(out):
+            raise  # main's: the reader of our output left
         if not isinstance(exc, VlmproprioError) and is_write_failure(exc):
             # a write that did not go through vlmproprio.io (a library's own file): still one line
             exc = write_error(getattr(exc, "filename", None) or "a file", exc)
