@@ -436,8 +436,8 @@ def _openai_live(ref: ModelRef, settings: BackendSettings) -> Availability:
     if importlib.util.find_spec("openai") is None:
         return Availability(False, "needs the openai SDK: pip install 'vlmproprio[openai]'")
     oa = settings.for_kind("openai")
-    url = oa.base_url or os.environ.get("OPENAI_BASE_URL")  # the SDK's default when --base-url is not given
-    if os.environ.get(oa.api_key_env) or url:
+    if os.environ.get(oa.api_key_env) or oa.base_url:  # as OpenAIBackend requires
+        url = oa.base_url or os.environ.get("OPENAI_BASE_URL")  # the SDK's default when --base-url is not given
         return Availability(True, f"OpenAI-compatible server {url or '(OpenAI API)'}")
     return Availability(False, f"set ${oa.api_key_env} (OpenAI API) or a --base-url of an OpenAI-compatible server")
 
