@@ -32,7 +32,7 @@ from vlmproprio.cache import (
 from vlmproprio.chat import ANSWER_PROBLEMS, RequestTag, answer_problem
 from vlmproprio.episodes.manifest import write_fixture_file
 from vlmproprio.errors import VlmproprioError
-from vlmproprio.io import loads_json
+from vlmproprio.io import loads_json, read_limited
 from vlmproprio.secrets import scrub, scrub_obj
 
 CASSETTE_VERSION = 1
@@ -85,9 +85,9 @@ def read_cassette(path: Path | str) -> Cassette:
     """Load and verify a cassette; any bad line is a CassetteError naming the file and line number."""
     path = Path(path)
     try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise CassetteError(f"{path}: cannot read cassette ({exc.strerror or exc})") from exc
+        raw = read_limited(path, error=CassetteError)
+    except FileNotFoundError as exc:
+        raise CassetteError(f"{path}: cannot read cassette (missing)") from exc
     lines = raw.split(b"\n")
     if lines and lines[-1] == b"":
         lines.pop()

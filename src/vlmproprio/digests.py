@@ -25,7 +25,8 @@ import time
 from functools import lru_cache
 from pathlib import Path
 
-from vlmproprio.io import WriteError, atomic_write_text
+from vlmproprio.errors import VlmproprioError
+from vlmproprio.io import WriteError, atomic_write_text, load_json
 
 MEMO_FILE = "folder-digests.json"
 MEMO_VERSION = 1
@@ -68,8 +69,8 @@ def hash_files(root: Path, listing: Listing) -> str:
 
 def _read_memo(path: Path) -> dict[str, dict]:
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, ValueError):
+        data = load_json(path)
+    except (OSError, VlmproprioError):
         return {}
     if not isinstance(data, dict) or data.get("version") != MEMO_VERSION or not isinstance(data.get("folders"), dict):
         return {}

@@ -35,3 +35,16 @@ def did_you_mean(name: str, known: Iterable[str]) -> str:
     """ " (did you mean 'x'?)" for the known names closest to a misspelled one, else ""."""
     close = difflib.get_close_matches(name, list(known), n=2, cutoff=0.6)
     return f" (did you mean {' or '.join(repr(c) for c in close)}?)" if close else ""
+
+
+# Characters that would break a one-line message or move the terminal's cursor: C0 and C1 controls, DEL, and
+# Unicode's line and paragraph separators. A tab stays (it is one line).
+_UNPRINTABLE = {c: None for c in (*range(0, 9), *range(10, 32), 127, *range(128, 160), 0x2028, 0x2029)}
+
+
+def one_line(text: str) -> str:
+    """``text`` with every control character escaped (``\\n``, ``\\x1b``, ``\\u2028``) as ``repr`` writes it, so a
+    name holding one (an episode id with a newline) cannot split an error line in two or reach the terminal raw."""
+    if not any(ord(c) in _UNPRINTABLE for c in text):
+        return text
+    return "".join(repr(c)[1:-1] if ord(c) in _UNPRINTABLE else c for c in text)

@@ -6,6 +6,10 @@
 * ``writing(path)``: turns an OSError (read-only folder, no permission, disk full) or an SQLite write error
   ("database or disk is full", "attempt to write a readonly database") into one ``WriteError`` line naming
   the path and the cause. Nothing half-written stays behind: the temp file is removed.
+* ``read_limited``: every file read by a path a user gave (fixtures, cassettes, run folders, sidecars) is read
+  through it: a regular file (never a device, FIFO or folder: ``/dev/zero`` would never end) of at most
+  ``MAX_READ_BYTES``, else one line naming the file. ``atomic_write_bytes`` likewise refuses a target that
+  exists and is not a regular file (``--out /dev/full``).
 * ``load_json`` / ``loads_json``: size and nesting-depth limits, one ``JSONLoadError`` line naming the file
   (never a ``RecursionError`` from ``[`` x 100 000).
 """
@@ -18,6 +22,7 @@ import hashlib
 import json
 import os
 import sqlite3
+import stat
 import tempfile
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
@@ -27,6 +32,8 @@ from vlmproprio.errors import VlmproprioError
 # A fixture's episode.json is ~100 KB, scores/sweep.json a few MB, a cassette line a few KB: 256 MiB is
 # far above anything the suite writes and far below what would exhaust memory.
 MAX_JSON_BYTES = 256 * 1024 * 1024
+# One limit for every file read whole (a PNG frame is ~50 KB, a steps.npz ~1 MB, a cassette a few MB).
+MAX_READ_BYTES = MAX_JSON_BYTES
 # The deepest document the suite writes is ~6 levels (audit.json); 64 leaves room and stays far from
 # Python's recursion limit in any code that walks a document.
 MAX_JSON_DEPTH = 64
@@ -40,6 +47,12 @@ class WriteError(VlmproprioError):
 
 class JSONLoadError(VlmproprioError):
     """A JSON document that cannot be read: malformed, too large or nested too deeply; names the file."""
+
+
+class ReadError(VlmproprioError):
+    """A file that cannot be read whole: not a regular file, too large, or an OS error; names the file.
+
+    ``detail`` holds the message without the path, for callers that phrase their own."""
 
 
 # ---------------------------------------------------------------------------------------------- write errors
@@ -94,6 +107,9 @@ def atomic_write_bytes(path: Path | str, data: bytes) -> str:
     A failure (read-only folder, full disk) is a WriteError and leaves neither the temp file nor a
     half-written target; an existing target keeps its old content."""
     path = Path(path)
+    kind = special_kind(path)
+    if kind is not None:  # renaming over /dev/full would replace the device; a FIFO is not a file to keep
+        raise WriteError(f"cannot write {path}: {kind}, not a regular file")
     tmp: str | None = None
     try:
         with writing(path):
@@ -179,11 +195,86 @@ def text_computed_once(lock: Path, done: Path, compute: Callable[[], str]) -> st
 
 
 def sha256_file(path: Path | str) -> str:
+    """The sha256 of a regular file's bytes; ``ReadError`` for a device, FIFO or folder (``/dev/zero`` never
+    ends), FileNotFoundError passes through."""
     h = hashlib.sha256()
-    with open(path, "rb") as f:
+    with _open_regular(Path(path), ReadError) as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------- bounded reads
+
+_KINDS = (
+    (stat.S_ISDIR, "a folder"),
+    (stat.S_ISCHR, "a character device"),
+    (stat.S_ISBLK, "a block device"),
+    (stat.S_ISFIFO, "a FIFO (named pipe)"),
+    (stat.S_ISSOCK, "a socket"),
+)
+
+
+def _kind_of(mode: int) -> str | None:
+    """What a file of this mode is, when it is not a regular file."""
+    if stat.S_ISREG(mode):
+        return None
+    return next((name for test, name in _KINDS if test(mode)), "not a plain file")
+
+
+def special_kind(path: Path | str) -> str | None:
+    """``"a folder"``, ``"a character device"``, ... when ``path`` exists (links followed) and is not a regular
+    file; None when it is one or does not exist."""
+    try:
+        return _kind_of(os.stat(path).st_mode)
+    except OSError:
+        return None
+
+
+def detailed(error: type[VlmproprioError], where: Path | str, detail: str) -> VlmproprioError:
+    """``error("WHERE: DETAIL")`` with ``detail`` kept as an attribute, for callers that phrase their own line."""
+    exc = error(f"{where}: {detail}")
+    exc.detail = detail  # type: ignore[attr-defined]
+    return exc
+
+
+@contextlib.contextmanager
+def _open_regular(path: Path, error: type[VlmproprioError], max_bytes: int | None = None):
+    """An open binary file that is regular (checked on the open descriptor too, so a FIFO swapped in after the
+    check neither blocks, thanks to O_NONBLOCK, nor is read) and, with ``max_bytes``, no larger than that."""
+    kind = special_kind(path)
+    if kind is not None:  # checked before opening: opening a FIFO for reading blocks until a writer comes
+        raise detailed(error, path, f"{kind}, not a regular file")
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_NOCTTY", 0))
+    except FileNotFoundError:
+        raise
+    except OSError as exc:
+        raise detailed(error, path, f"cannot read ({_cause(exc)})") from exc
+    with os.fdopen(fd, "rb") as f:
+        st = os.fstat(fd)
+        kind = _kind_of(st.st_mode)
+        if kind is not None:
+            raise detailed(error, path, f"{kind}, not a regular file")
+        if max_bytes is not None and st.st_size > max_bytes:
+            raise detailed(error, path, f"{st.st_size:,} bytes, more than the {max_bytes:,} allowed")
+        try:
+            yield f
+        except OSError as exc:
+            raise detailed(error, path, f"cannot read ({_cause(exc)})") from exc
+
+
+def read_limited(
+    path: Path | str, *, max_bytes: int = MAX_READ_BYTES, error: type[VlmproprioError] = ReadError
+) -> bytes:
+    """The bytes of a regular file of at most ``max_bytes``; ``error`` (one line naming the file, with
+    ``detail``) for a device, FIFO, folder, a larger file or an OS error. FileNotFoundError passes through."""
+    path = Path(path)
+    with _open_regular(path, error, max_bytes) as f:
+        data = f.read(max_bytes + 1)  # a file that grew after the size check is still cut off here
+    if len(data) > max_bytes:
+        raise detailed(error, path, f"more than the {max_bytes:,} bytes allowed")
+    return data
 
 
 # ---------------------------------------------------------------------------------------------- bounded JSON
@@ -216,9 +307,7 @@ def loads_json(
     The error's ``detail`` attribute holds the message without ``where``, for callers that phrase their own."""
 
     def fail(detail: str) -> VlmproprioError:
-        exc = error(f"{where}: {detail}")
-        exc.detail = detail  # type: ignore[attr-defined]
-        return exc
+        return detailed(error, where, detail)
 
     if len(text) > max_bytes:
         raise fail(f"{len(text):,} bytes of JSON, more than the {max_bytes:,} allowed")
@@ -243,24 +332,50 @@ def load_json(
     max_depth: int = MAX_JSON_DEPTH,
     error: type[VlmproprioError] = JSONLoadError,
 ):
-    """Read and parse a JSON file with the limits of ``loads_json``; FileNotFoundError passes through."""
+    """Read (``read_limited``) and parse a JSON file with the limits of ``loads_json``; every error but
+    FileNotFoundError, which passes through, is ``error`` with ``detail``."""
     path = Path(path)
-    try:
-        size = path.stat().st_size
-        if size > max_bytes:
-            raise error(f"{path}: {size:,} bytes of JSON, more than the {max_bytes:,} allowed")
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise
-    except OSError as exc:
-        raise error(f"{path}: cannot read ({_cause(exc)})") from exc
+    data = read_limited(path, max_bytes=max_bytes, error=error)
     return loads_json(data, path, max_bytes=max_bytes, max_depth=max_depth, error=error)
 
 
 def load_required_json(path: Path | str, missing: str, *, error: type[VlmproprioError] = JSONLoadError):
     """``load_json`` of a file that must be there: a missing file is ``error`` too, with the message ``missing``
-    (which says what the file is and what to do), not a FileNotFoundError."""
+    (which says what the file is and what to do), not a FileNotFoundError; it has ``detail`` (that message) too."""
     try:
         return load_json(path, error=error)
     except FileNotFoundError:
-        raise error(missing) from None
+        exc = error(missing)
+        exc.detail = missing  # type: ignore[attr-defined]  # as every error of the reader has
+        raise exc from None
+
+
+def read_npz(
+    path: Path | str, *, max_bytes: int = MAX_READ_BYTES, error: type[VlmproprioError] = ReadError
+) -> dict[str, object]:
+    """Every array of an ``.npz`` file, by name without ``.npy``; never unpickles. The file is read with
+    ``read_limited`` and its members may not inflate past ``max_bytes`` in all (a small zip can hold a huge
+    array); anything unreadable is ``error`` naming the file (not the member inside it), with ``detail``.
+    FileNotFoundError passes through."""
+    import io as _io
+    import zipfile
+
+    import numpy as np
+
+    path = Path(path)
+    data = read_limited(path, max_bytes=max_bytes, error=error)
+    try:
+        with zipfile.ZipFile(_io.BytesIO(data)) as zf:
+            inflated = sum(info.file_size for info in zf.infolist())
+        if inflated > max_bytes:
+            raise detailed(
+                error, path, f"its arrays inflate to {inflated:,} bytes, more than the {max_bytes:,} allowed"
+            )
+        with np.load(_io.BytesIO(data), allow_pickle=False) as npz:
+            return {name: npz[name] for name in npz.files}
+    except (VlmproprioError, MemoryError):
+        raise
+    except Exception as exc:
+        # whatever damaged bytes make zipfile or numpy raise (an "encrypted" member is a RuntimeError, an unknown
+        # zip version a NotImplementedError); their messages name the member, so the line names the file first
+        raise detailed(error, path, f"{type(exc).__name__}: {exc}") from exc

@@ -56,17 +56,27 @@ def find_repository_fixtures(start: Path | None = None) -> Path | None:
     return None
 
 
-def resolve_fixtures(explicit: Path | str | None = None, *, must_exist: bool = True) -> Path:
+def _existing_folder(path: Path, given_by: str) -> Path:
+    """``path`` when it is a folder; a UsageError naming the flag or variable that gave it otherwise (a typo
+    must not read as "no fixtures", nor list models against a folder that is not there)."""
+    if not path.is_dir():
+        what = "is not a folder" if path.exists() else "does not exist"
+        raise UsageError(f"{given_by} {path}: {what}; pass the fixture folder (the one holding {MANIFEST})")
+    return path
+
+
+def resolve_fixtures(explicit: Path | str | None = None, *, must_exist: bool = True, flag: str = "--fixtures") -> Path:
     """The fixture folder to use: explicit, else $VLMPROPRIO_FIXTURES, else the repository's, else the checkout's.
 
     ``must_exist=False`` is for commands that create fixtures (record, manifest): an explicit or environment
-    folder is returned even if it is not there yet.
+    folder is returned even if it is not there yet; otherwise one that is not a folder is a UsageError naming
+    ``flag`` (the option that gave ``explicit``) or the variable.
     """
     if explicit is not None and str(explicit) != "":
-        return Path(explicit)
+        return _existing_folder(Path(explicit), flag) if must_exist else Path(explicit)
     env = os.environ.get(FIXTURES_ENV)
     if env:
-        return Path(env)
+        return _existing_folder(Path(env), f"${FIXTURES_ENV}") if must_exist else Path(env)
     found = find_repository_fixtures() or _source_checkout_fixtures()
     if found is not None:
         return found

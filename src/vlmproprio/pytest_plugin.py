@@ -35,6 +35,7 @@ from typing import TYPE_CHECKING
 import pytest
 
 from vlmproprio import options as opt
+from vlmproprio.errors import one_line
 from vlmproprio.locations import FIXTURES_ENV
 
 if TYPE_CHECKING:  # annotations only: the work is in vlmproprio.bench, imported when a model runs
@@ -84,6 +85,10 @@ def option(config: pytest.Config, name: str):
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    for name in ("run-dir", "fixtures-dir"):  # `--run-dir ""` (an empty shell variable) is not "the default"
+        value = option(config, name)
+        if value is not None and not str(value).strip():
+            raise pytest.UsageError(f"--{name}: an empty path; give a folder, or leave the option out")
     # A wrong --model / --episodes / --conditions / --fixtures-dir is a usage error before collection (one clean
     # line), but only when given.
     if (
@@ -92,10 +97,13 @@ def pytest_configure(config: pytest.Config) -> None:
         or option(config, "conditions")
         or option(config, "fixtures-dir")
     ):
-        _refuse_a_path_pytest_took_for_a_test_path(config)
-        session = _session(config)
-        if option(config, "model") and not config.option.collectonly:  # listing the cells runs none
-            _refuse_unrunnable(session)
+        try:
+            _refuse_a_path_pytest_took_for_a_test_path(config)
+            session = _session(config)
+            if option(config, "model") and not config.option.collectonly:  # listing the cells runs none
+                _refuse_unrunnable(session)
+        except pytest.UsageError as exc:  # one line, as the CLI's: a name with a newline cannot split it
+            raise pytest.UsageError(one_line(str(exc))) from None
 
 
 def _refuse_a_path_pytest_took_for_a_test_path(config: pytest.Config) -> None:
@@ -265,9 +273,12 @@ def _session(config: pytest.Config) -> BenchSession:
         # the repository pytest runs in: `pytest /path/to/repo/benchmark` finds its fixtures from any folder
         explicit = find_repository_fixtures(Path(config.rootpath))
     try:
-        fixtures = resolve_fixtures(explicit)
+        fixtures = resolve_fixtures(explicit, flag="--fixtures-dir")
     except VlmproprioError as exc:
-        raise pytest.UsageError(f"--fixtures-dir: {exc}") from None
+        message = str(exc)
+        raise pytest.UsageError(
+            message if message.startswith("--fixtures-dir") else f"--fixtures-dir: {message}"
+        ) from None
     episodes_opt = option(config, "episodes")
     episodes = tuple(opt.split_list(episodes_opt))
     if episodes_opt is not None and not episodes:  # `--episodes ""` (an empty shell variable) is not "all"

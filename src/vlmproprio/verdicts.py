@@ -29,6 +29,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from vlmproprio.errors import VlmproprioError
+from vlmproprio.io import read_limited
 from vlmproprio.stats import benjamini_hochberg, holm
 
 CLAIMS_FILE = Path(__file__).with_name("claims.yml")
@@ -120,8 +121,10 @@ def load_claims(path: str | Path | None = None) -> Claims:
 
     p = Path(path) if path is not None else CLAIMS_FILE
     try:
-        raw = p.read_bytes()
+        raw = read_limited(p, error=ClaimsError)
         data = yaml.safe_load(raw)
+    except FileNotFoundError as exc:
+        raise ClaimsError(f"{p}: cannot read the claims file (missing)") from exc
     except (OSError, yaml.YAMLError) as exc:
         raise ClaimsError(f"{p}: cannot read the claims file ({exc})") from exc
     if not isinstance(data, dict) or not isinstance(data.get("primary"), dict) or not data["primary"]:

@@ -87,9 +87,20 @@ def test_fixtures_come_from_the_option_then_the_environment_then_the_repository(
     monkeypatch.delenv("VLMPROPRIO_FIXTURES", raising=False)
     monkeypatch.chdir(REPO / "docs")
     assert resolve_fixtures() == FIXTURES  # the repository the command runs in
+    (tmp_path / "env").mkdir()
+    (tmp_path / "opt").mkdir()
     monkeypatch.setenv("VLMPROPRIO_FIXTURES", str(tmp_path / "env"))
     assert resolve_fixtures() == tmp_path / "env"
     assert resolve_fixtures(tmp_path / "opt") == tmp_path / "opt"
+
+
+def test_a_named_fixture_folder_that_is_not_there_is_an_error(monkeypatch, tmp_path) -> None:
+    monkeypatch.setenv("VLMPROPRIO_FIXTURES", str(tmp_path / "env"))
+    with pytest.raises(UsageError, match=r"\$VLMPROPRIO_FIXTURES .*env: does not exist"):
+        resolve_fixtures()
+    with pytest.raises(UsageError, match=r"--fixtures .*opt: does not exist"):
+        resolve_fixtures(tmp_path / "opt")
+    assert resolve_fixtures(tmp_path / "new", must_exist=False) == tmp_path / "new"  # record makes it
 
 
 def test_outside_a_repository_and_a_checkout_the_error_says_how(monkeypatch, tmp_path) -> None:

@@ -208,7 +208,7 @@ BAD_FLAGS = {
     "negative image cap": (("--max-images-p3", "-1"), "--max-images-p3 must be in [0, inf], got -1"),
     "out is a file": (("--out", "a-file"), "cannot create run directory a-file"),
     "cache is a file": (("--cache-dir", "a-file"), "cannot create cache directory a-file"),
-    "no fixtures": (("--fixtures", "nowhere"), "manifest missing"),
+    "no fixtures": (("--fixtures", "nowhere"), "--fixtures nowhere: does not exist"),
     "openai without key or server": (("--model", "openai:gpt-x"), "no API key"),
     "negative timeout": (
         ("--model", "openai:gpt-x", "--base-url", "http://127.0.0.1:9/v1", "--timeout", "-1"),
@@ -252,7 +252,7 @@ def test_flags_argparse_refuses_are_its_usage_error(sandbox, args, message):
         (["score", "nowhere"], "nowhere"),
         (["cassette", "import", "nowhere.jsonl", "--cache", "cache"], "cannot read cassette"),
         (["cassette", "export", "--model", "hf:../x", "--cache", "cache"], "refused"),
-        (["verify", "--fixtures", "nowhere"], "manifest missing"),
+        (["verify", "--fixtures", "nowhere"], "--fixtures nowhere: does not exist"),
     ],
 )
 def test_other_commands_fail_in_one_line(sandbox, argv, message, figures):
@@ -291,7 +291,7 @@ def test_debug_shows_the_traceback_of_damaged_fixtures(sandbox):
         (["--mode", "fast"], "invalid choice: 'fast'"),
         (["--conditions", "nope"], "unknown condition 'nope'"),
         (["--episodes", "../door_00"], "unknown episode(s) ../door_00"),
-        (["--bench-fixtures", "/nowhere"], "no episodes in /nowhere"),
+        (["--bench-fixtures", "/nowhere"], "--fixtures-dir /nowhere: does not exist"),
     ],
 )
 def test_benchmark_plugin_options_are_usage_errors(option, message, figures):

@@ -46,6 +46,7 @@ from typing import TYPE_CHECKING
 from vlmproprio.backends.base import Availability, Backend, BackendError
 from vlmproprio.backends.http_bounds import DEFAULT_MAX_RESPONSE_BYTES, Bounds, bounded_http_client, refusal_of
 from vlmproprio.backends.openai_replies import MalformedCompletion, answer_problem_of, read_completion, token_count
+from vlmproprio.backends.urls import check_server_url, server_url_argument
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart
 from vlmproprio.kinds import KindOption, KindSpec, register_kind
 from vlmproprio.models import ModelRef, file_slug
@@ -98,6 +99,10 @@ class OpenAIBackend(Backend):
             raise BackendError(f"max_response_bytes must be a positive whole number, got {max_response_bytes!r}")
         if not api_key_env.replace("_", "").isalnum():
             raise BackendError(f"api_key_env must be an environment variable name, got {api_key_env!r}")
+        if base_url is not None:
+            check_server_url(base_url, "--base-url")
+        elif os.environ.get("OPENAI_BASE_URL"):  # the SDK's own default: checked and named like --base-url
+            check_server_url(os.environ["OPENAI_BASE_URL"], "$OPENAI_BASE_URL")
         self.model = model
         self.settings = OpenAISettings(
             base_url=base_url,
@@ -200,7 +205,7 @@ class OpenAIBackend(Backend):
         import openai
 
         body = self._body(request)
-        where = self.settings.base_url or "the OpenAI API"
+        where = self.settings.base_url or os.environ.get("OPENAI_BASE_URL") or "the OpenAI API"  # as the SDK picks
         attempts = 1 + self.settings.max_retries
         for attempt in range(1, attempts + 1):
             t0 = time.perf_counter()
@@ -239,11 +244,9 @@ class OpenAIBackend(Backend):
                     401: "check the API key in $" + self.settings.api_key_env,
                     403: "the key may lack access to this model",
                     404: self._not_found_hint(),
-                    429: "rate limited even after retries; lower --concurrency or wait",
+                    429: "lower --concurrency or wait",
                 }.get(exc.status_code, "")
-                retried = (
-                    f" after {attempts} tries" if exc.status_code in (408, 409, 429) or exc.status_code >= 500 else ""
-                )
+                retried = self._tries_phrase(exc.response, attempts)
                 raise BackendError(
                     f"{where} answered HTTP {exc.status_code}{retried}: {detail}" + (f"; {hint}" if hint else "")
                 ) from None
@@ -263,6 +266,27 @@ class OpenAIBackend(Backend):
             )
             return Answer(text=reply.text, meta=meta, reasoning=reply.reasoning)
         raise AssertionError("unreachable")  # pragma: no cover
+
+    def _tries_phrase(self, response, attempts: int) -> str:
+        """What the SDK did with this failed response: " after N tries" when it retries such a response (so it
+        stopped for running out of retries), ", not retried (why)" when the response itself told it to stop
+        (a Retry-After over the SDK's limit, ``x-should-retry: false``), "" for a status it never retries."""
+        should_retry = getattr(self.client, "_should_retry", None)  # the SDK's own rule, not a copy of it
+        if should_retry is None:
+            return ""
+        if should_retry(response):
+            return f" after {attempts} tries"
+        if response.headers.get("x-should-retry") == "false":
+            return ", not retried (the server sent x-should-retry: false)"
+        wait = self.client._parse_retry_after_header(response.headers)
+        if (
+            wait is not None
+            and math.isfinite(wait)
+            and wait > 0
+            and (response.status_code in (408, 409, 429) or response.status_code >= 500)
+        ):
+            return f", not retried (Retry-After asks to wait {wait:g} s, longer than the client waits)"
+        return ""
 
     def _body(self, request: ChatRequest) -> dict:
         cfg = request.config
@@ -365,8 +389,9 @@ def _openai_live(ref: ModelRef, settings: BackendSettings) -> Availability:
     if importlib.util.find_spec("openai") is None:
         return Availability(False, "needs the openai SDK: pip install 'vlmproprio[openai]'")
     oa = settings.for_kind("openai")
-    if os.environ.get(oa.api_key_env) or oa.base_url:
-        return Availability(True, f"OpenAI-compatible server {oa.base_url or '(OpenAI API)'}")
+    if os.environ.get(oa.api_key_env) or oa.base_url:  # as OpenAIBackend requires
+        url = oa.base_url or os.environ.get("OPENAI_BASE_URL")  # the SDK's default when --base-url is not given
+        return Availability(True, f"OpenAI-compatible server {url or '(OpenAI API)'}")
     return Availability(False, f"set ${oa.api_key_env} (OpenAI API) or a --base-url of an OpenAI-compatible server")
 
 
@@ -379,6 +404,7 @@ _OPENAI_OPTIONS = (
             "models": "OpenAI-compatible server the openai models would use",
             "score": "OpenAI-compatible server URL for an openai: judge",
         },
+        server_url_argument,
     ),
     KindOption(
         "--api-key-env",

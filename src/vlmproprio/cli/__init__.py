@@ -10,7 +10,12 @@ holding its handlers and its sub-command parsers, the shared ``arguments``, the 
 ``console`` (scrubbing, progress bars) and the backends' options (``backend_options``).
 """
 
-from vlmproprio.cli.app import main
-from vlmproprio.cli.parser import build_parser
+import vlmproprio
+
+try:
+    from vlmproprio.cli.app import main
+    from vlmproprio.cli.parser import build_parser
+finally:
+    vlmproprio._end_of_start()  # Ctrl-C while importing was handled by vlmproprio/__init__.py; main's from here
 
 __all__ = ["build_parser", "main"]

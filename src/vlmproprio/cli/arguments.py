@@ -67,9 +67,16 @@ def add_run_dir(p: argparse.ArgumentParser) -> None:
     p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run directory (the --out of the run command)")
 
 
+def nonempty_argument(text: str) -> str:
+    """argparse ``type`` of a name or path kept as text (``--encoder``): empty is a usage error, not the default."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty value; give a name or a path")
+    return text
+
+
 def add_encoder(p, folder_help: str, batch_help: str) -> None:
     """The sentence encoder of the caption embeddings (score, cassette embed)."""
-    p.add_argument("--encoder", default=None, metavar="PATH", help=folder_help)
+    p.add_argument("--encoder", type=nonempty_argument, default=None, metavar="PATH", help=folder_help)
     p.add_argument("--encoder-batch-size", type=int, default=8, help=batch_help)
 
 
@@ -80,3 +87,11 @@ def add_workers(p: argparse.ArgumentParser, what: str, results: str) -> None:
         help=f"processes for {what} (default: $VLMPROPRIO_WORKERS, else the usable cores, at most 4); "
         f"the {results} are the same with any number",
     )
+
+
+def path_argument(text: str) -> Path:
+    """argparse ``type`` of every path option and argument: ``--out ''`` is a usage error, not the current folder
+    (``Path('')`` is ``.``), and so is a path of spaces only."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty path; give a file or folder name")
+    return Path(text)

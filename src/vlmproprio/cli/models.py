@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from vlmproprio.cli.arguments import add_fixtures, add_list, command
@@ -18,12 +19,14 @@ def cmd_models(args: argparse.Namespace) -> int:
     if args.plain:
         print(format_registry())
         return 0
-    from vlmproprio.locations import resolve_fixtures
+    from vlmproprio.locations import FIXTURES_ENV, resolve_fixtures
 
     try:
         fixtures = resolve_fixtures(args.fixtures)
     except UsageError:
-        fixtures = None
+        if args.fixtures is not None or os.environ.get(FIXTURES_ENV):  # a folder named but not there
+            raise
+        fixtures = None  # none found: the registry is still worth listing
     cassettes = fixtures / "responses" if fixtures else Path("fixtures") / "responses"
     settings = backend_settings(args, cassette_dir=cassettes)
     print(f"cassettes: {cassettes}" + ("" if fixtures else " (no fixture folder found: pass --fixtures)"))

@@ -7,6 +7,7 @@ import math
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+from vlmproprio.cli.arguments import path_argument
 from vlmproprio.cli.cassette import add_cassette
 from vlmproprio.cli.fixtures import add_export_dataset, add_fixture_commands, add_import_demos
 from vlmproprio.cli.models import add_make_tiny_model, add_models
@@ -16,7 +17,7 @@ from vlmproprio.cli.run import add_run, add_show
 from vlmproprio.cli.score import add_score
 from vlmproprio.cli.texts import MAINTAINER_COMMANDS
 from vlmproprio.conditions import CONTROLS, PAPER_CONDITIONS
-from vlmproprio.errors import UsageError
+from vlmproprio.errors import UsageError, one_line
 
 EPILOG = """\
 typical use:
@@ -52,8 +53,16 @@ _SUBCOMMANDS: tuple[Callable[[argparse._SubParsersAction], None], ...] = (
 )
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's parser, whose usage errors escape control characters (a value holding a newline stays one
+    line); its sub-command parsers are of this class too."""
+
+    def error(self, message: str):
+        super().error(one_line(message))
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="vlmproprio",
         description="Does proprioception make a VLM's captions and subtask segmentations of robot "
         f"episodes better? Record episodes, caption them with a model under {_count(PAPER_CONDITIONS)} state "
@@ -68,6 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
         add(sub)
     _uniform_metavars(parser)
     _whole_numbers_take_non_finite(parser)
+    _refuse_empty_paths(parser)
     return parser
 
 
@@ -161,3 +171,13 @@ def _whole_numbers_take_non_finite(parser: argparse.ArgumentParser) -> None:
                 _whole_numbers_take_non_finite(sub)
         elif action.type is int:
             action.type = _whole_number
+
+
+def _refuse_empty_paths(parser: argparse.ArgumentParser) -> None:
+    """Every option and positional argument of type ``Path`` takes ``path_argument`` instead: one rule for all."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                _refuse_empty_paths(sub)
+        elif action.type is Path:
+            action.type = path_argument

@@ -8,7 +8,6 @@ import io
 import itertools
 import json
 import zipfile
-import zlib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from vlmproprio.embeddings.encoder import VECTOR_DTYPE, EmbeddingError, EncoderSpec
+from vlmproprio.io import ReadError, read_npz
 
 SIDECAR_SUFFIX = ".embeddings.npz"
 SIDECAR_FORMAT = "vlmproprio-caption-embeddings"
@@ -146,12 +146,11 @@ def read_sidecar(path: str | Path) -> Sidecar:
         return EmbeddingError(f"{path}: {why}; rebuild it with `vlmproprio cassette embed --model MODEL`")
 
     try:
-        with np.load(path, allow_pickle=False) as npz:
-            arrays = {name: npz[name] for name in npz.files}
+        arrays = read_npz(path)
     except FileNotFoundError as exc:
         raise EmbeddingError(f"{path}: embeddings sidecar not found") from exc
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-        raise bad(f"not a readable embeddings sidecar ({type(exc).__name__}: {exc})") from exc
+    except ReadError as exc:
+        raise bad(f"not a readable embeddings sidecar ({exc.detail})") from exc
     head = arrays.get("header")
     if head is None or head.dtype.kind != "U" or head.ndim != 0:
         raise bad("no JSON header")

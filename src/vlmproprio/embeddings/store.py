@@ -24,18 +24,29 @@ def default_embedding_dir() -> Path:
 
 
 class EmbeddingStore:
-    """(encoder key, text) -> float32 vector, on disk, shared safely between processes (diskcache/SQLite)."""
+    """(encoder key, text) -> float32 vector, on disk, shared safely between processes (diskcache/SQLite).
+
+    The folder is opened (created) on first use, not when the store is made: a score whose sidecars hold every
+    vector never asks it, so it runs with a read-only or unwritable cache folder."""
 
     def __init__(self, directory: str | Path):
-        from vlmproprio.stores import BYTES_VALUES, open_store
-
         self.directory = Path(directory)
-        self._cache = open_store(
-            self.directory, BYTES_VALUES, error=EmbeddingError, what="embedding cache", size_limit=2**40
-        )
+        self._opened = None
+
+    @property
+    def _cache(self):
+        if self._opened is None:
+            from vlmproprio.stores import BYTES_VALUES, open_store
+
+            self._opened = open_store(
+                self.directory, BYTES_VALUES, error=EmbeddingError, what="embedding cache", size_limit=2**40
+            )
+        return self._opened
 
     def close(self) -> None:
-        self._cache.close()
+        if self._opened is not None:
+            self._opened.close()
+            self._opened = None
 
     def __enter__(self) -> EmbeddingStore:
         return self

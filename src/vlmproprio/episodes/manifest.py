@@ -18,15 +18,47 @@ from vlmproprio.io import (
     atomic_write_together,
     load_json,
     sha256_file,
+    special_kind,
 )
 
 
-def _fixture_files(root: Path) -> list[str]:
-    return sorted(
-        p.relative_to(root).as_posix()
-        for p in root.rglob("*")
-        if p.is_file() and p.name != MANIFEST_NAME and not p.name.startswith(".")
+def link_error(path: Path) -> EpisodeError:
+    """The one rule for symbolic links inside a fixture folder (manifest, verify and run all apply it): refused,
+    since the manifest vouches for the files in the folder, and a link's target can change behind it."""
+    return EpisodeError(
+        f"{path}: a symbolic link inside the fixture folder; copy what it points to in instead (the manifest "
+        "vouches only for files the folder holds)"
     )
+
+
+def check_no_links(root: Path, path: Path) -> None:
+    """EpisodeError when ``path`` or a folder between ``root`` and it is a symbolic link (``root`` itself may be)."""
+    for part in (path, *path.parents):
+        if part == root or root not in part.parents:
+            return
+        if part.is_symlink():
+            raise link_error(part)
+
+
+def _fixture_files(root: Path) -> list[str]:
+    """The files under ``root`` a manifest lists (not hidden ones, not the manifest), as sorted relative paths;
+    a symbolic link anywhere below ``root`` is an EpisodeError (``link_error``)."""
+    found = []
+    for folder, dirs, names in os.walk(root, onerror=None, followlinks=False):
+        here = Path(folder)
+        for name in (*dirs, *names):
+            if os.path.islink(here / name) and not name.startswith("."):
+                raise link_error(here / name)
+        for name in names:  # a FIFO or device among the files: named, not taken for a missing file
+            kind = special_kind(here / name)
+            if kind is not None and not name.startswith("."):
+                raise EpisodeError(f"{here / name}: {kind} inside the fixture folder, not a regular file")
+        found += [
+            (here / n).relative_to(root).as_posix()
+            for n in names
+            if n != MANIFEST_NAME and not n.startswith(".") and (here / n).is_file()
+        ]
+    return sorted(found)
 
 
 def build_manifest(root: Path) -> dict:
@@ -160,6 +192,7 @@ def verify_files(root: Path, prefix: str = "", manifest: dict[str, str] | None =
     manifest = read_manifest(root) if manifest is None else manifest
     expected = {k: v for k, v in manifest.items() if k.startswith(prefix)}
     here = root / prefix
+    check_no_links(root, here)
     present = {prefix + rel for rel in _fixture_files(here)} if here.is_dir() else set()
     for rel in sorted(present - expected.keys()):
         raise EpisodeError(f"{root / rel}: extra file, not in {root / MANIFEST_NAME}")

@@ -19,7 +19,7 @@ import numpy as np
 
 from vlmproprio.episodes.types import EPISODE_FILE, EpisodeError
 from vlmproprio.errors import VlmproprioError
-from vlmproprio.io import atomic_write_bytes
+from vlmproprio.io import ReadError, atomic_write_bytes, read_limited
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"  # the empty IEND chunk and its CRC: every complete PNG ends so
@@ -46,10 +46,7 @@ def read_checked_png(path: Path, digest: str, index: int) -> bytes:
 
     The pixel check decodes the image, once per file content and process: scoring, which sends no image,
     pays nothing."""
-    try:
-        data = path.read_bytes()
-    except OSError as exc:
-        raise EpisodeError(f"{path}: cannot read image ({exc.strerror or exc})") from exc
+    data = read_image_file(path)
     if not (data.startswith(PNG_SIGNATURE) and data.endswith(PNG_END)):
         raise EpisodeError(
             f"{path}: not a complete PNG file (truncated or damaged); restore it (git checkout) "
@@ -63,13 +60,8 @@ def _check_pixels(path: Path, data: bytes, digest: str, index: int) -> None:
     seen = hashlib.sha256(data).digest() + digest.encode()
     if seen in _PIXELS_VERIFIED:
         return
-    from PIL import Image
 
-    try:
-        with Image.open(io.BytesIO(data)) as im:
-            rgb = np.asarray(im.convert("RGB"))
-    except (OSError, SyntaxError, ValueError) as exc:
-        raise EpisodeError(f"{path}: cannot decode image ({exc})") from exc
+    rgb = decode_png_bytes(path, data)
     if pixel_sha256(rgb) != digest:
         raise EpisodeError(
             f"{path}: its pixels differ from frame {index}'s pixel_sha256 in "
@@ -79,16 +71,35 @@ def _check_pixels(path: Path, data: bytes, digest: str, index: int) -> None:
     _PIXELS_VERIFIED.add(seen)
 
 
-def decode_rgb(path: Path) -> np.ndarray:
-    """Decoded RGB pixels (H, W, 3) uint8."""
+def read_image_file(path: Path) -> bytes:
+    """The bytes of an image file, read with ``vlmproprio.io.read_limited`` (a regular file, bounded)."""
+    try:
+        return read_limited(path)
+    except FileNotFoundError as exc:
+        raise EpisodeError(f"{path}: cannot read image (missing)") from exc
+    except ReadError as exc:
+        raise EpisodeError(f"{path}: cannot read image ({exc.detail})") from exc
+
+
+def decode_png_bytes(path: Path, data: bytes) -> np.ndarray:
+    """Decoded RGB pixels (H, W, 3) uint8 of the image file ``path`` whose bytes are ``data``; EpisodeError
+    naming it when they do not decode, or would decode to more pixels than PIL allows (a decompression bomb:
+    a few KB of PNG claiming 16000 x 16000 pixels)."""
     from PIL import Image
 
     try:
-        with Image.open(path) as im:
+        with Image.open(io.BytesIO(data)) as im:
             im.load()
             return np.asarray(im.convert("RGB"))
-    except (OSError, SyntaxError, ValueError) as exc:
+    except Image.DecompressionBombError as exc:
+        raise EpisodeError(f"{path}: image too large to decode ({exc})") from exc
+    except (OSError, SyntaxError, ValueError, EOFError) as exc:
         raise EpisodeError(f"{path}: cannot decode image ({exc})") from exc
+
+
+def decode_rgb(path: Path) -> np.ndarray:
+    """Decoded RGB pixels (H, W, 3) uint8."""
+    return decode_png_bytes(path, read_image_file(path))
 
 
 def write_png(path: Path, rgb: np.ndarray) -> None:

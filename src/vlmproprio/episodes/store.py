@@ -17,16 +17,17 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
 import zipfile
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 
 from vlmproprio.episodes import pixels
-from vlmproprio.episodes.manifest import read_manifest, verify_files
+from vlmproprio.episodes.manifest import check_no_links, read_manifest, verify_files
 from vlmproprio.episodes.pixels import decode_rgb, read_checked_png
 from vlmproprio.episodes.types import (
     EE_DIM,
@@ -45,7 +46,7 @@ from vlmproprio.episodes.types import (
     TargetBin,
     check_episode_id,
 )
-from vlmproprio.io import JSONLoadError, atomic_write_bytes, atomic_write_text, load_json
+from vlmproprio.io import JSONLoadError, ReadError, atomic_write_bytes, atomic_write_text, load_json, read_npz
 
 
 @dataclass(frozen=True)
@@ -148,12 +149,26 @@ def write_steps(path: Path, states: StepStates) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
+# the arrays of steps.npz and the numpy dtype kinds each may have: integers (i, u) or, for states, floats too
+_STEP_KINDS = {"step": "iu", "joints": "iuf", "ee": "iuf", "phase": "iu", "direction": "iu"}
+
+
 def read_steps(path: Path) -> StepStates:
     try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in ("step", "joints", "ee", "phase", "direction")}
-    except (OSError, KeyError, ValueError, zipfile.BadZipFile) as exc:
-        raise EpisodeError(f"{path}: cannot read full-rate states ({exc})") from exc
+        stored = read_npz(path)
+    except FileNotFoundError as exc:
+        raise EpisodeError(f"{path}: cannot read full-rate states (missing)") from exc
+    except ReadError as exc:
+        raise EpisodeError(f"{path}: cannot read full-rate states ({exc.detail})") from exc
+    missing = [k for k in _STEP_KINDS if k not in stored]
+    if missing:
+        raise EpisodeError(f"{path}: cannot read full-rate states (no {', '.join(missing)} array)")
+    arrays = {k: stored[k] for k in _STEP_KINDS}
+    for k, kinds in _STEP_KINDS.items():  # a string or object array would fail later with a Python error
+        if arrays[k].dtype.kind not in kinds:
+            raise EpisodeError(f"{path}: {k} holds {arrays[k].dtype} values, expected numbers ({kinds})")
+    if arrays["step"].ndim != 1:
+        raise EpisodeError(f"{path}: step has shape {arrays['step'].shape}, expected one number per step")
     n = len(arrays["step"])
     shapes = {"joints": (n, JOINT_DIM), "ee": (n, EE_DIM), "phase": (n,), "direction": (n,)}
     for k, shape in shapes.items():
@@ -175,64 +190,122 @@ def _vector(value, dim: int, what: str, where: str) -> tuple[float, ...]:
     return tuple(out)
 
 
+# What each JSON value of episode.json must be (the annotations of TargetBin and PhaseSpan use the same words).
+_KINDS = {"str": (str, "a string"), "int": (int, "an integer"), "bool": (bool, "true or false"),
+          "dict": (dict, "a JSON object"), "list": (list, "a list")}  # fmt: skip
+
+
+def _json_kind(value) -> str:
+    if value is None:
+        return "null"
+    names = {
+        bool: "true/false",
+        int: "an integer",
+        float: "a number",
+        str: "a string",
+        list: "a list",
+        dict: "an object",
+    }
+    return f"{names.get(type(value), type(value).__name__)} {json.dumps(value)[:40]}"
+
+
+def _typed(data: dict, key: str, kind: str, where: str):
+    """``data[key]``, which must be of ``kind`` (a key of _KINDS); EpisodeError naming the key and what it holds,
+    not a Python error from using it (``TargetBin(**"x")``, ``dict("abc")``)."""
+    if key not in data:
+        raise EpisodeError(f"{where}: no {key!r}")
+    value = data[key]
+    types, words = _KINDS[kind]
+    if not isinstance(value, types) or (kind == "int" and isinstance(value, bool)):
+        raise EpisodeError(f"{where}: {key} must be {words}, got {_json_kind(value)}")
+    return value
+
+
+def _typed_list(data: dict, key: str, item: str, where: str) -> list:
+    """``data[key]``: a list whose every element is of kind ``item``."""
+    values = _typed(data, key, "list", where)
+    types, words = _KINDS[item]
+    for i, v in enumerate(values):
+        if not isinstance(v, types) or (item == "int" and isinstance(v, bool)):
+            raise EpisodeError(f"{where}: {key}[{i}] must be {words}, got {_json_kind(v)}")
+    return values
+
+
+def _record(cls, value, what: str, where: str):
+    """The dataclass ``cls`` (TargetBin, PhaseSpan) from a JSON object with exactly its fields, each of its type."""
+    names = [f.name for f in fields(cls)]
+    if not isinstance(value, dict):
+        raise EpisodeError(f"{where}: {what} must be an object with {', '.join(names)}; got {_json_kind(value)}")
+    extra = sorted(set(value) - set(names))
+    if extra:
+        raise EpisodeError(f"{where}: {what} has unknown key(s) {', '.join(map(repr, extra))}")
+    return cls(**{f.name: _typed(value, f.name, str(f.type), f"{where}: {what}") for f in fields(cls)})
+
+
+def _parse_frame(episode_dir: Path, inside: Path, i: int, row, where: str) -> Frame:
+    fw = f"{where}: frames[{i}]"
+    if not isinstance(row, dict):
+        raise EpisodeError(f"{fw} must be an object, got {_json_kind(row)}")
+    if _typed(row, "index", "int", fw) != i:
+        raise EpisodeError(f"{fw}: index {row['index']} out of order")
+    img = episode_dir / _typed(row, "file", "str", fw)
+    if "\0" in row["file"] or inside not in img.resolve().parents:
+        raise EpisodeError(f"{fw}: image path {row['file']!r} leaves the episode folder")
+    return Frame(
+        index=i,
+        step=_typed(row, "step", "int", fw),
+        image_path=img,
+        image_sha256=_typed(row, "pixel_sha256", "str", fw),
+        joints=_vector(row.get("joints"), JOINT_DIM, "joints", fw),
+        ee=_vector(row.get("ee"), EE_DIM, "ee", fw),
+        phase=_typed(row, "phase", "str", fw),
+        direction=_typed(row, "direction", "str", fw),
+    )
+
+
 def _parse_episode(episode_dir: Path, data: dict) -> Episode:
     where = str(episode_dir / EPISODE_FILE)
-    try:
-        if data.get("format_version") != FORMAT_VERSION:
-            raise EpisodeError(f"{where}: format_version {data.get('format_version')!r}, expected {FORMAT_VERSION}")
-        if data["task"] not in TASKS:
-            raise EpisodeError(f"{where}: unknown task {data['task']!r} (known: {', '.join(TASKS)})")
-        frames = []
-        inside = episode_dir.resolve()  # once per episode, not per frame
-        for i, row in enumerate(data["frames"]):
-            fw = f"{where}: frames[{i}]"
-            if row["index"] != i:
-                raise EpisodeError(f"{fw}: index {row['index']} out of order")
-            img = episode_dir / row["file"]
-            if inside not in img.resolve().parents:
-                raise EpisodeError(f"{fw}: image path {row['file']!r} leaves the episode folder")
-            frames.append(
-                Frame(
-                    index=i,
-                    step=int(row["step"]),
-                    image_path=img,
-                    image_sha256=str(row["pixel_sha256"]),
-                    joints=_vector(row["joints"], JOINT_DIM, "joints", fw),
-                    ee=_vector(row["ee"], EE_DIM, "ee", fw),
-                    phase=str(row["phase"]),
-                    direction=str(row["direction"]),
-                )
-            )
-        if not frames:
-            raise EpisodeError(f"{where}: no frames")
-        tb = data.get("target_bin")
-        target_bin = TargetBin(**tb) if tb else None
-        return Episode(
-            episode_id=check_episode_id(data["episode_id"]),
-            root=episode_dir,
-            task=data["task"],
-            env_name=data["env_name"],
-            target_object=data["target_object"],
-            action=data["action"],
-            instruction=data["instruction"],
-            target_bin=target_bin,
-            seed=int(data["seed"]),
-            steps=int(data["steps"]),
-            stride=int(data["stride"]),
-            camera=data["camera"],
-            image_size=tuple(data["image_size"]),
-            versions=dict(data["versions"]),
-            success=bool(data["success"]),
-            phase_names=tuple(data["phase_names"]),
-            direction_vocab=tuple(data["direction_vocab"]),
-            phases=tuple(PhaseSpan(**p) for p in data["phases"]),
-            frames=tuple(frames),
-            extra=dict(data.get("extra", {})),
-        )
-    except EpisodeError:
-        raise
-    except (KeyError, TypeError, ValueError) as exc:
-        raise EpisodeError(f"{where}: malformed episode metadata ({type(exc).__name__}: {exc})") from exc
+    if data.get("format_version") != FORMAT_VERSION:
+        raise EpisodeError(f"{where}: format_version {data.get('format_version')!r}, expected {FORMAT_VERSION}")
+    task = _typed(data, "task", "str", where)
+    if task not in TASKS:
+        raise EpisodeError(f"{where}: unknown task {task!r} (known: {', '.join(TASKS)})")
+    inside = episode_dir.resolve()  # once per episode, not per frame
+    frames = [
+        _parse_frame(episode_dir, inside, i, row, where) for i, row in enumerate(_typed(data, "frames", "list", where))
+    ]
+    if not frames:
+        raise EpisodeError(f"{where}: no frames")
+    tb = data.get("target_bin")
+    image_size = _typed_list(data, "image_size", "int", where)
+    if len(image_size) != 2:
+        raise EpisodeError(f"{where}: image_size must be [width, height], got {_json_kind(image_size)}")
+    extra = data.get("extra", {})
+    if not isinstance(extra, dict):
+        raise EpisodeError(f"{where}: extra must be a JSON object, got {_json_kind(extra)}")
+    phases = _typed(data, "phases", "list", where)
+    return Episode(
+        episode_id=check_episode_id(_typed(data, "episode_id", "str", where)),
+        root=episode_dir,
+        task=task,
+        env_name=_typed(data, "env_name", "str", where),
+        target_object=_typed(data, "target_object", "str", where),
+        action=_typed(data, "action", "str", where),
+        instruction=_typed(data, "instruction", "str", where),
+        target_bin=_record(TargetBin, tb, "target_bin", where) if tb is not None else None,
+        seed=_typed(data, "seed", "int", where),
+        steps=_typed(data, "steps", "int", where),
+        stride=_typed(data, "stride", "int", where),
+        camera=_typed(data, "camera", "str", where),
+        image_size=tuple(image_size),
+        versions=dict(_typed(data, "versions", "dict", where)),
+        success=_typed(data, "success", "bool", where),
+        phase_names=tuple(_typed_list(data, "phase_names", "str", where)),
+        direction_vocab=tuple(_typed_list(data, "direction_vocab", "str", where)),
+        phases=tuple(_record(PhaseSpan, p, f"phases[{i}]", where) for i, p in enumerate(phases)),
+        frames=tuple(frames),
+        extra=dict(extra),
+    )
 
 
 def load_episode(root: Path, episode_id: str, *, verify: bool = True, manifest: dict | None = None) -> Episode:
@@ -266,8 +339,8 @@ def check_steps(episode: Episode) -> None:
     """steps.npz must agree with episode.json: one row per sim step, and at each sampled frame's step the
     same joints, end-effector pose and phase."""
     path = episode.root / STEPS_FILE
-    if not path.is_file():  # an episode without full-rate states (the manifest says whether one is missing)
-        return
+    if not os.path.lexists(path):  # an episode without full-rate states (the manifest says whether one is missing);
+        return  # anything else by that name (a folder, a FIFO) is read, and refused by read_npz
     states = episode.step_states
     n = len(states.step)
     if n != episode.steps + 1 or not np.array_equal(states.step, np.arange(n)):
@@ -299,6 +372,7 @@ def load_episodes(root: Path, episode_ids: Sequence[str] | None = None, *, verif
         # an extra episode folder is an error too, not something to skip silently
         listed = {k.split("/")[1] for k in manifest if k.startswith("episodes/")}
         for eid in list_episode_ids(root):
+            check_no_links(root, root / "episodes" / eid)  # the rule manifest and verify apply
             if eid not in listed:
                 raise EpisodeError(f"{root / 'episodes' / eid}: extra episode, not in {root / MANIFEST_NAME}")
     ids = list(episode_ids) if episode_ids is not None else list_episode_ids(root)

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from vlmproprio.episodes import write_episode, write_manifest
 from vlmproprio.errors import UsageError
-from vlmproprio.io import atomic_write_text
+from vlmproprio.io import atomic_write_text, load_json
 from vlmproprio.record.catalog import SlotPlan, set_plan
 
 PARTIAL_DIR = ".partial"
@@ -71,7 +71,8 @@ def _prepare(out: Path, doc: dict) -> None:
     (out / "episodes").mkdir(parents=True, exist_ok=True)
     path = out / SET_FILE
     if path.is_file():
-        old = json.loads(path.read_text())
+        old = load_json(path, error=UsageError)
+        old = old if isinstance(old, dict) else {}
         if {k: old.get(k) for k in doc} != doc:
             raise UsageError(
                 f"{out} holds another episode set ({path}: {json.dumps(old, sort_keys=True)}); record into "

@@ -244,12 +244,14 @@ def write_thumbnail(src: Path, out_dir: Path, size: int = THUMB_PX) -> str:
     """A JPEG thumbnail named by the sha256 of the source file (kept if already there); returns its name."""
     from PIL import Image
 
-    data = src.read_bytes()
+    from vlmproprio.episodes.pixels import decode_png_bytes, read_image_file
+
+    data = read_image_file(src)
     name = f"{hashlib.sha256(data).hexdigest()[:24]}.jpg"
     dest = out_dir / name
     if not dest.is_file():
-        with Image.open(io.BytesIO(data)) as im:
-            im = im.convert("RGB")
+        # decoded with the pixel check's limits (a decompression bomb is one line naming the file)
+        with Image.fromarray(decode_png_bytes(src, data), "RGB") as im:
             im.thumbnail((size, size))
             buf = io.BytesIO()
             im.save(buf, format="JPEG", quality=THUMB_QUALITY, optimize=True)

@@ -13,6 +13,7 @@ from importlib import resources
 from pathlib import Path
 
 from vlmproprio.errors import VlmproprioError
+from vlmproprio.io import load_json
 
 SCHEMA_VERSION = 1
 # file in a run folder -> schema name
@@ -63,7 +64,8 @@ def validate_run(run_dir: str | Path) -> list[str]:
             continue
         schema = load_schema(name)
         validator = jsonschema.Draft202012Validator(schema)
-        errors = sorted(validator.iter_errors(json.loads(path.read_text(encoding="utf-8"))), key=lambda e: e.path)
+        document = load_json(path, error=SchemaError)
+        errors = sorted(validator.iter_errors(document), key=lambda e: e.path)
         if errors:
             e = errors[0]
             where = "/".join(str(p) for p in e.absolute_path) or "(top)"

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from vlmproprio.errors import VlmproprioError
+from vlmproprio.io import special_kind
 
 
 class DemoImportError(VlmproprioError):
@@ -68,6 +69,9 @@ def _h5py():
 def _open(path: Path):
     h5py = _h5py()
     path = Path(path)
+    kind = special_kind(path)
+    if kind is not None:  # h5py would open a FIFO and wait for a writer
+        raise DemoImportError(f"{path}: {kind}, not a regular file")
     if not path.is_file():
         raise DemoImportError(f"{path}: no such file")
     try:
