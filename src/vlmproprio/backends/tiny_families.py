@@ -9,7 +9,8 @@ tiny (hidden 64, 2 layers), the text context holds Process 3 of the longest fixt
 and the image geometry keeps the real number of tokens a 256x256 frame costs wherever the vision tower allows
 it cheaply (each builder says where it does not).
 
-What the builds share (tokenizer, text config, file layout) is vlmproprio.backends.tiny_common.
+What the builds share (tokenizer, text config, file layout) is vlmproprio.backends.tiny_common; LLaVA-NeXT and
+Idefics2, both on a Mistral language model, are built in vlmproprio.backends.tiny_mistral_families.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from vlmproprio.backends.tiny_common import (
     tiny_text_config,
     token_ids,
 )
+from vlmproprio.backends.tiny_mistral_families import save_idefics2, save_llava_next
 
 # ------------------------------------------------------------------------------------------------ Qwen3-VL
 
@@ -413,66 +415,6 @@ def save_mllama(out: Path, seed: int) -> None:
     save_pieces(out, tok, image_processor, "MllamaProcessor", chat_template("mllama"))
 
 
-# ------------------------------------------------------------------------------------------------ LLaVA-NeXT
-
-NEXT_PINPOINTS = [[336, 672], [672, 336], [672, 672], [1008, 336], [336, 1008]]  # as published
-
-
-def save_llava_next(out: Path, seed: int) -> None:
-    """LLaVA-NeXT, LLaVA-1.6 (llava-hf/llava-v1.6-mistral-7b-hf's processor: 336 px views, the anyres grid of the
-    five published resolutions, the template that puts a turn's images before its text, ``[INST]`` as plain text
-    on a Mistral language model). Every image, alone or not, gets a base view plus its anyres tiles: a square
-    frame is fitted to 336x672 (two tiles), unpadded back to a square, with a newline token after each row. The
-    real CLIP tower has 14 px patches: 576 tokens the base view, 24x24 + 24 the tiles, 1,176 a frame, so Process 3
-    at 31 frames (~36k image tokens) does not fit the 32k context. The tiny tower has 42 px patches: 8x8 = 64 the
-    base view, 8x8 + 8 the tiles, 136 a frame, the same layout 8.6 times cheaper."""
-    from transformers import LlavaNextConfig, LlavaNextForConditionalGeneration, LlavaNextImageProcessorPil
-
-    named = {"image_token": "<image>"}
-    tok = family_tokenizer(bos="<s>", eos="</s>", pad="<pad>", named=named)
-    [image] = token_ids(tok, "<image>")
-    config = LlavaNextConfig(
-        text_config=dict(model_type="mistral", **tiny_text_config(tok, eos="</s>", head_dim=16, sliding_window=None)),
-        vision_config=dict(
-            model_type="clip_vision_model",
-            hidden_size=32,
-            intermediate_size=64,
-            num_hidden_layers=2,
-            num_attention_heads=4,
-            projection_dim=64,
-            image_size=336,
-            patch_size=42,  # the real 14 px: 1,176 tokens a frame
-        ),
-        image_token_index=image,
-        vision_feature_select_strategy="default",
-        vision_feature_layer=-2,
-        image_grid_pinpoints=NEXT_PINPOINTS,
-        image_seq_length=64,
-        tie_word_embeddings=False,
-    )
-    save_model(out, LlavaNextForConditionalGeneration, config, tok, ("</s>",), seed)
-    image_processor = LlavaNextImageProcessorPil(
-        size={"shortest_edge": 336},
-        crop_size={"height": 336, "width": 336},
-        image_grid_pinpoints=NEXT_PINPOINTS,
-        image_mean=[0.48145466, 0.4578275, 0.40821073],
-        image_std=[0.26862954, 0.26130258, 0.27577711],
-        resample=3,  # bicubic, as published
-        do_center_crop=True,
-        do_pad=True,
-    )
-    save_pieces(
-        out,
-        tok,
-        image_processor,
-        "LlavaNextProcessor",
-        chat_template("llava-next"),
-        patch_size=42,
-        vision_feature_select_strategy="default",
-        num_additional_image_tokens=1,
-    )
-
-
 BUILDERS: dict[str, Callable[[Path, int], None]] = {
     "qwen3-vl": save_qwen3_vl,
     "gemma3": save_gemma3,
@@ -483,4 +425,5 @@ BUILDERS: dict[str, Callable[[Path, int], None]] = {
     "glm4v": save_glm4v,
     "mllama": save_mllama,
     "llava-next": save_llava_next,
+    "idefics2": save_idefics2,
 }
