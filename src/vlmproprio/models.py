@@ -39,6 +39,8 @@ TINY_FAMILY_LABELS: dict[str, str] = {
     "mistral3": "Mistral 3",
     "glm4v": "GLM-4.1V",
     "mllama": "Mllama (Llama 3.2 Vision)",
+    "llava-next": "LLaVA-NeXT",
+    "idefics2": "Idefics2",
 }
 MAX_NAME_LEN = 200
 _SLUG_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}$")
@@ -141,6 +143,25 @@ REGISTRY: dict[str, ModelRef] = {
             "hf",
             "meta-llama/Llama-3.2-90B-Vision-Instruct",
             "Llama 3.2 90B Vision Instruct (Mllama), open weights (gated)",
+        ),
+        _registered(
+            "llava-next",
+            "hf",
+            "llava-hf/llava-v1.6-mistral-7b-hf",
+            "LLaVA-NeXT (LLaVA-1.6) Mistral 7B (transformers port), open weights",
+        ),
+        _registered(
+            "llava-next-13b",
+            "hf",
+            "llava-hf/llava-v1.6-vicuna-13b-hf",
+            "LLaVA-NeXT (LLaVA-1.6) Vicuna 13B (transformers port), open weights",
+        ),
+        _registered("idefics2", "hf", "HuggingFaceM4/idefics2-8b", "Idefics2 8B, open weights"),
+        _registered(
+            "idefics2-chatty",
+            "hf",
+            "HuggingFaceM4/idefics2-8b-chatty",
+            "Idefics2 8B chatty (longer answers), open weights",
         ),
         _registered("lfm2-vl", "hf", "LiquidAI/LFM2-VL-450M", "LFM2-VL 450M, open weights; needs torchvision"),
         _registered("lfm2-vl-1.6b", "hf", "LiquidAI/LFM2-VL-1.6B", "LFM2-VL 1.6B, open weights; needs torchvision"),

@@ -3,7 +3,7 @@
 Families with the real architectures and processors but a few hundred thousand random parameters
 (``FAMILIES``). Built here: ``qwen2-vl`` (Qwen2VLForConditionalGeneration), ``qwen2.5-vl`` and ``llava`` (a
 CLIP vision tower on a Qwen2 language model); the others (Qwen3-VL, Gemma 3, Idefics3, InternVL,
-LLaVA-OneVision, Mistral 3, GLM-4.1V, Mllama) by vlmproprio.backends.tiny_families, with their chat templates
+LLaVA-OneVision, Mistral 3, GLM-4.1V, Mllama, LLaVA-NeXT, Idefics2) by vlmproprio.backends.tiny_families, with their chat templates
 as data files (docs/models.md lists them and what each keeps of the published geometry).
 The tokenizer is a byte-level BPE trained here on synthetic robot-prompt text,
 with the Qwen2 pre-tokenizer and special tokens; the chat templates follow the
@@ -47,6 +47,8 @@ FAMILIES: tuple[str, ...] = (
     "mistral3",
     "glm4v",
     "mllama",
+    "llava-next",
+    "idefics2",
 )
 BUILD_VERSION = 2  # 2: the LLaVA build's context holds Process 3 at the image cap
 STAMP_FILE = "vlmproprio-tiny.json"

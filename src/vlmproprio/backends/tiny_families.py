@@ -9,7 +9,8 @@ tiny (hidden 64, 2 layers), the text context holds Process 3 of the longest fixt
 and the image geometry keeps the real number of tokens a 256x256 frame costs wherever the vision tower allows
 it cheaply (each builder says where it does not).
 
-What the builds share (tokenizer, text config, file layout) is vlmproprio.backends.tiny_common.
+What the builds share (tokenizer, text config, file layout) is vlmproprio.backends.tiny_common; LLaVA-NeXT and
+Idefics2, both on a Mistral language model, are built in vlmproprio.backends.tiny_mistral_families.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from vlmproprio.backends.tiny_common import (
     tiny_text_config,
     token_ids,
 )
+from vlmproprio.backends.tiny_mistral_families import save_idefics2, save_llava_next
 
 # ------------------------------------------------------------------------------------------------ Qwen3-VL
 
@@ -422,4 +424,6 @@ BUILDERS: dict[str, Callable[[Path, int], None]] = {
     "mistral3": save_mistral3,
     "glm4v": save_glm4v,
     "mllama": save_mllama,
+    "llava-next": save_llava_next,
+    "idefics2": save_idefics2,
 }
