@@ -177,15 +177,8 @@ def build_qwen(config_cls_name: str, text: dict, vision: dict) -> Callable[[obje
         import transformers
 
         tok = processor.tokenizer
-        ids = {
-            f"{k}_token_id": tok.convert_tokens_to_ids(t)
-            for k, t in (
-                ("image", "<|image_pad|>"),
-                ("video", "<|video_pad|>"),
-                ("vision_start", "<|vision_start|>"),
-                ("vision_end", "<|vision_end|>"),
-            )
-        }
+        names = {"image": "image_pad", "video": "video_pad", "vision_start": "vision_start", "vision_end": "vision_end"}
+        ids = {f"{k}_token_id": tok.convert_tokens_to_ids(f"<|{t}|>") for k, t in names.items()}
         config = getattr(transformers, config_cls_name)(text_config=text, vision_config=vision, **ids)
         model = random_model(config)
         model.generation_config.eos_token_id = tok.convert_tokens_to_ids("<|im_end|>")
@@ -294,11 +287,6 @@ def episode_requests(episode: str, condition: str) -> dict[str, list]:
 # ---------------------------------------------------------------------------------------------- measuring
 
 
-def reset_peak_rss() -> None:
-    """Set VmHWM back to the current RSS (Linux: write 5 to /proc/self/clear_refs)."""
-    Path("/proc/self/clear_refs").write_text("5")
-
-
 def rss_gb(field: str) -> float:
     """VmRSS or VmHWM of this process, GB."""
     for line in Path("/proc/self/status").read_text().splitlines():
@@ -332,7 +320,7 @@ def measure(backend, family: Family, stage: str, request, forward: bool) -> dict
     if not forward:
         return {**row, "forward": "skipped (--tokens-only)"}
     gc.collect()
-    reset_peak_rss()
+    Path("/proc/self/clear_refs").write_text("5")  # VmHWM back to the current RSS (Linux)
     t0 = time.perf_counter()
     (answer,) = backend.generate([request])
     wall = time.perf_counter() - t0
