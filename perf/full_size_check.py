@@ -1,6 +1,6 @@
 """Full-size VLM architectures without their weights: what one Process-1 and one Process-3 request cost.
 
-    python perf/full_size_check.py                                   # the three families, CPU, ~15 min on 2 cores
+    python perf/full_size_check.py --tokens-only smolvlm-256m        # three families, CPU: ~30 min on 2 busy cores
     python perf/full_size_check.py --family smolvlm-256m --tokens-only smolvlm-256m   # counts only, no forward
 
 Models: Qwen2-VL-2B-Instruct, Qwen2.5-VL-3B-Instruct and SmolVLM-256M-Instruct (Idefics3), each built from its
@@ -384,7 +384,7 @@ def main(argv=None) -> int:
     for name in args.family or list(FAMILIES):
         rows += run_family(FAMILIES[name], requests, dirs.get(name), name in args.tokens_only)
     cols = ["family", "request", "prompt_tokens", "image_tokens_per_frame", "context", "fits", "forward"]
-    cols += ["wall_s", "peak_rss_gb", "weights_gb", "params_b", "build_s"]
+    cols += ["wall_s", "peak_rss_gb", "rss_loaded_gb", "weights_gb", "params_b", "build_s"]
     print()
     print(f"episode {args.episode}, condition {args.condition}; CPU, {args.threads} threads, bf16, max_new_tokens=1")
     print(table(rows, cols))
