@@ -1,7 +1,7 @@
 """Full-size VLM architectures without their weights: what one Process-1 and one Process-3 request cost.
 
     python perf/full_size_check.py --tokens-only smolvlm-256m        # three families, CPU: ~30 min on 2 busy cores
-    python perf/full_size_check.py --family smolvlm-256m --tokens-only smolvlm-256m   # counts only, no forward
+    python perf/full_size_check.py --family smolvlm-256m --tokens-only smolvlm-256m   # P3 counted, not run
 
 Models: Qwen2-VL-2B-Instruct, Qwen2.5-VL-3B-Instruct and SmolVLM-256M-Instruct (Idefics3), each built from its
 published config.json (the values typed in below) with random bf16 weights: no weights can be downloaded, and
