@@ -78,6 +78,11 @@ def tiny_text_config(tok, *, context: int = CONTEXT, eos: str, **extra) -> dict:
     return cfg
 
 
+def tiny_vision_config(**extra) -> dict:
+    """A tiny vision tower's size (2 layers, 4 heads, width 32), with the family's own keys in ``extra``."""
+    return dict(hidden_size=32, intermediate_size=64, num_hidden_layers=2, num_attention_heads=4, **extra)
+
+
 def save_model(out: Path, model_cls, config, tok, ends: tuple[str, ...], seed: int) -> None:
     import torch
 

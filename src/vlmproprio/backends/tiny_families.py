@@ -24,6 +24,7 @@ from vlmproprio.backends.tiny_common import (
     save_model,
     save_pieces,
     tiny_text_config,
+    tiny_vision_config,
     token_ids,
 )
 from vlmproprio.backends.tiny_mistral_families import save_idefics2, save_llava_next
@@ -100,11 +101,7 @@ def save_gemma3(out: Path, seed: int) -> None:
     )
     config = Gemma3Config(
         text_config=text,
-        vision_config=dict(
-            hidden_size=32,
-            intermediate_size=64,
-            num_hidden_layers=2,
-            num_attention_heads=4,
+        vision_config=tiny_vision_config(
             image_size=224,
             patch_size=14,
         ),
@@ -145,11 +142,7 @@ def save_idefics3(out: Path, seed: int) -> None:
     [image] = token_ids(tok, "<image>")
     config = Idefics3Config(
         text_config=dict(model_type="llama", **tiny_text_config(tok, eos="<end_of_utterance>")),
-        vision_config=dict(
-            hidden_size=32,
-            intermediate_size=64,
-            num_hidden_layers=2,
-            num_attention_heads=4,
+        vision_config=tiny_vision_config(
             image_size=512,
             patch_size=16,
         ),
@@ -189,11 +182,7 @@ def save_internvl(out: Path, seed: int) -> None:
     [image] = token_ids(tok, "<IMG_CONTEXT>")
     config = InternVLConfig(
         text_config=dict(model_type="qwen2", **tiny_text_config(tok, eos="<|im_end|>")),
-        vision_config=dict(
-            hidden_size=32,
-            intermediate_size=64,
-            num_hidden_layers=2,
-            num_attention_heads=4,
+        vision_config=tiny_vision_config(
             image_size=[448, 448],
             patch_size=[14, 14],
             use_absolute_position_embeddings=True,
@@ -239,12 +228,8 @@ def save_llava_onevision(out: Path, seed: int) -> None:
     image, video = token_ids(tok, "<image>", "<video>")
     config = LlavaOnevisionConfig(
         text_config=dict(model_type="qwen2", **tiny_text_config(tok, eos="<|im_end|>")),
-        vision_config=dict(
+        vision_config=tiny_vision_config(
             model_type="siglip_vision_model",
-            hidden_size=32,
-            intermediate_size=64,
-            num_hidden_layers=2,
-            num_attention_heads=4,
             image_size=384,
             patch_size=48,
             vision_use_head=False,
@@ -293,12 +278,8 @@ def save_mistral3(out: Path, seed: int) -> None:
     [image] = token_ids(tok, "[IMG]")
     config = Mistral3Config(
         text_config=dict(model_type="mistral", **tiny_text_config(tok, eos="</s>", head_dim=16, sliding_window=None)),
-        vision_config=dict(
+        vision_config=tiny_vision_config(
             model_type="pixtral",
-            hidden_size=32,
-            intermediate_size=64,
-            num_hidden_layers=2,
-            num_attention_heads=4,
             image_size=1540,
             patch_size=14,
         ),

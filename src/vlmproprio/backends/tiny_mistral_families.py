@@ -14,6 +14,7 @@ from vlmproprio.backends.tiny_common import (
     save_model,
     save_pieces,
     tiny_text_config,
+    tiny_vision_config,
     token_ids,
 )
 
@@ -37,12 +38,8 @@ def save_llava_next(out: Path, seed: int) -> None:
     [image] = token_ids(tok, "<image>")
     config = LlavaNextConfig(
         text_config=dict(model_type="mistral", **tiny_text_config(tok, eos="</s>", head_dim=16, sliding_window=None)),
-        vision_config=dict(
+        vision_config=tiny_vision_config(
             model_type="clip_vision_model",
-            hidden_size=32,
-            intermediate_size=64,
-            num_hidden_layers=2,
-            num_attention_heads=4,
             projection_dim=64,
             image_size=336,
             patch_size=42,  # the real 14 px: 1,176 tokens a frame
@@ -94,11 +91,7 @@ def save_idefics2(out: Path, seed: int) -> None:
     text = tiny_text_config(tok, eos="</s>", head_dim=16, sliding_window=None)
     config = Idefics2Config(
         text_config=dict(model_type="mistral", rms_norm_eps=1e-5, **text),
-        vision_config=dict(
-            hidden_size=32,
-            intermediate_size=64,
-            num_hidden_layers=2,
-            num_attention_heads=4,
+        vision_config=tiny_vision_config(
             image_size=980,
             patch_size=14,
         ),
