@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import contextlib
 import logging
 import secrets
 import threading
@@ -240,6 +241,34 @@ def test_planted_api_key_never_reaches_any_file(api_key, request_factory, png_fa
     assert api_key not in str(info.value) and api_key not in repr(backend)
 
 
+@contextlib.contextmanager
+def status_server(status: int, body: dict):
+    """A server on 127.0.0.1 that answers every POST with ``status`` and the JSON ``body``; yields its root URL."""
+    import json
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    class Answers(BaseHTTPRequestHandler):
+        def do_POST(self):
+            self.rfile.read(int(self.headers["Content-Length"]))
+            data = json.dumps(body).encode()
+            self.send_response(status)
+            self.send_header("Content-Type", "application/json")
+            self.send_header("Content-Length", str(len(data)))
+            self.end_headers()
+            self.wfile.write(data)
+
+        def log_message(self, *args):
+            pass
+
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), Answers)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    try:
+        yield f"http://127.0.0.1:{httpd.server_address[1]}"
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+
+
 @pytest.mark.parametrize(
     "body",
     [
@@ -254,35 +283,12 @@ def test_planted_api_key_never_reaches_any_file(api_key, request_factory, png_fa
     ids=["openai", "fastapi", "fastapi-validation"],
 )
 def test_a_refused_request_shows_the_servers_reason(body, api_key, request_factory, png_factory):
-    import json
-    import threading
-    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-
     from vlmproprio.backends.openai import OpenAIBackend
 
-    class Refuses(BaseHTTPRequestHandler):
-        def do_POST(self):
-            self.rfile.read(int(self.headers["Content-Length"]))
-            data = json.dumps(body).encode()
-            self.send_response(400)
-            self.send_header("Content-Type", "application/json")
-            self.send_header("Content-Length", str(len(data)))
-            self.end_headers()
-            self.wfile.write(data)
-
-        def log_message(self, *args):
-            pass
-
-    httpd = ThreadingHTTPServer(("127.0.0.1", 0), Refuses)
-    threading.Thread(target=httpd.serve_forever, daemon=True).start()
-    try:
-        url = f"http://127.0.0.1:{httpd.server_address[1]}/v1"
-        backend = OpenAIBackend("m", base_url=url, api_key_env=KEY_ENV, max_retries=0, timeout_s=5.0)
+    with status_server(400, body) as root:
+        backend = OpenAIBackend("m", base_url=f"{root}/v1", api_key_env=KEY_ENV, max_retries=0, timeout_s=5.0)
         with pytest.raises(BackendError, match=r"answered HTTP 400: The prompt has 14489 tokens, but the model takes"):
             backend.generate(requests_for(request_factory, png_factory, 1))
-    finally:
-        httpd.shutdown()
-        httpd.server_close()
 
 
 def test_a_404_from_a_base_url_without_v1_asks_about_the_path(server, api_key, request_factory, png_factory):
@@ -297,36 +303,13 @@ def test_a_404_from_a_base_url_without_v1_asks_about_the_path(server, api_key, r
 
 
 def test_a_404_at_a_v1_url_asks_only_about_the_model(api_key, request_factory, png_factory):
-    import json
-    import threading
-    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-
     from vlmproprio.backends.openai import OpenAIBackend
 
-    class NoSuchModel(BaseHTTPRequestHandler):
-        def do_POST(self):
-            self.rfile.read(int(self.headers["Content-Length"]))
-            data = json.dumps({"error": {"message": "The model `m` does not exist.", "code": 404}}).encode()
-            self.send_response(404)
-            self.send_header("Content-Type", "application/json")
-            self.send_header("Content-Length", str(len(data)))
-            self.end_headers()
-            self.wfile.write(data)
-
-        def log_message(self, *args):
-            pass
-
-    httpd = ThreadingHTTPServer(("127.0.0.1", 0), NoSuchModel)
-    threading.Thread(target=httpd.serve_forever, daemon=True).start()
-    try:
-        url = f"http://127.0.0.1:{httpd.server_address[1]}/v1/"
-        backend = OpenAIBackend("m", base_url=url, api_key_env=KEY_ENV, max_retries=0, timeout_s=5.0)
+    with status_server(404, {"error": {"message": "The model `m` does not exist.", "code": 404}}) as root:
+        backend = OpenAIBackend("m", base_url=f"{root}/v1/", api_key_env=KEY_ENV, max_retries=0, timeout_s=5.0)
         with pytest.raises(BackendError, match=r"HTTP 404: The model `m` does not exist\.; does the server") as info:
             backend.generate(requests_for(request_factory, png_factory, 1))
         assert "serve model 'm'? (0 of 1" in str(info.value) and "/v1 path" not in str(info.value)
-    finally:
-        httpd.shutdown()
-        httpd.server_close()
 
 
 def test_the_thinking_switch_goes_to_the_server_as_chat_template_kwargs(server, api_key, request_factory, png_factory):
