@@ -37,44 +37,56 @@ def test_expectations_name_known_hypotheses() -> None:
         assert set(exp.values()) <= {"supported", "not supported", "inconclusive"}, model
 
 
-@pytest.mark.parametrize("hypothesis", [h.id for h in CLAIMS.hypotheses])
-def test_primary_verdict(bench_model, bench_session, hypothesis: str) -> None:
+def _skip_unless_judgeable(bench_model, bench_session, key: str, conditions: set[str]) -> None:
+    """Skip when the run cannot judge ``key`` (a hypothesis or a combined claim): not every episode, or a
+    condition it needs was not run."""
     _require_full_run(bench_model, bench_session)
-    h = next(h for h in CLAIMS.hypotheses if h.id == hypothesis)
-    missing = {h.a, h.b} - set(bench_model.conditions)
+    missing = conditions - set(bench_model.conditions)
     if missing:
-        pytest.skip(f"{hypothesis} needs condition(s) {', '.join(sorted(missing))} (see --conditions)")
-    slug = bench_model.model.slug
-    got = next(v for v in _verdicts(bench_model)["verdicts"] if v["model"] == slug and v["hypothesis"] == hypothesis)
-    expected = EXPECTED["expected"].get(bench_model.name, {}).get(hypothesis)
+        pytest.skip(f"{key} needs condition(s) {', '.join(sorted(missing))} (see --conditions)")
+
+
+def _expected_or_skip(bench_model, key: str, observed: str) -> str:
+    """The verdict benchmark/claims.yml expects of the model on ``key``; skips with the observed one when none is."""
+    expected = EXPECTED["expected"].get(bench_model.name, {}).get(key)
     if expected is None:
-        pytest.skip(f"no expectation in benchmark/claims.yml for {bench_model.name}; observed {format_verdict(got)}")
-    # no verdict of the fixtures may rest on sampled sign patterns: up to 40 pairs the test is exact
-    assert got["p_method"] == "exact sign-flip", format_verdict(got)
+        pytest.skip(f"no expectation in benchmark/claims.yml for {bench_model.name}; observed {observed}")
+    return expected
+
+
+def _assert_verdict(bench_model, got: dict, expected: str, text: str) -> None:
     assert got["verdict"] == expected, (
-        f"{bench_model.name}: {format_verdict(got)}; benchmark/claims.yml expects '{expected}'. "
+        f"{bench_model.name}: {text}; benchmark/claims.yml expects '{expected}'. "
         "If the change is meant, update the expectation."
     )
+
+
+def _mine(bench_model, section: str, field: str, key: str) -> dict:
+    slug = bench_model.model.slug
+    return next(v for v in _verdicts(bench_model)[section] if v["model"] == slug and v[field] == key)
+
+
+@pytest.mark.parametrize("hypothesis", [h.id for h in CLAIMS.hypotheses])
+def test_primary_verdict(bench_model, bench_session, hypothesis: str) -> None:
+    h = next(h for h in CLAIMS.hypotheses if h.id == hypothesis)
+    _skip_unless_judgeable(bench_model, bench_session, hypothesis, {h.a, h.b})
+    got = _mine(bench_model, "verdicts", "hypothesis", hypothesis)
+    text = format_verdict(got)
+    expected = _expected_or_skip(bench_model, hypothesis, text)
+    # no verdict of the fixtures may rest on sampled sign patterns: up to 40 pairs the test is exact
+    assert got["p_method"] == "exact sign-flip", text
+    _assert_verdict(bench_model, got, expected, text)
 
 
 @pytest.mark.parametrize("claim", [c.id for c in CLAIMS.combined])
 def test_combined_claim(bench_model, bench_session, claim: str) -> None:
     """The combined claims (both > none AND both > both_shuffled, ...) are gated like the hypotheses under them."""
-    _require_full_run(bench_model, bench_session)
     c = next(c for c in CLAIMS.combined if c.id == claim)
     needed = {x for h in CLAIMS.hypotheses if h.id in c.all_of for x in (h.a, h.b)}
-    missing = needed - set(bench_model.conditions)
-    if missing:
-        pytest.skip(f"{claim} needs condition(s) {', '.join(sorted(missing))} (see --conditions)")
-    slug = bench_model.model.slug
-    got = next(v for v in _verdicts(bench_model)["combined"] if v["model"] == slug and v["claim"] == claim)
-    expected = EXPECTED["expected"].get(bench_model.name, {}).get(claim)
-    if expected is None:
-        pytest.skip(f"no expectation in benchmark/claims.yml for {bench_model.name}; observed {format_combined(got)}")
-    assert got["verdict"] == expected, (
-        f"{bench_model.name}: {format_combined(got)}; benchmark/claims.yml expects '{expected}'. "
-        "If the change is meant, update the expectation."
-    )
+    _skip_unless_judgeable(bench_model, bench_session, claim, needed)
+    got = _mine(bench_model, "combined", "claim", claim)
+    text = format_combined(got)
+    _assert_verdict(bench_model, got, _expected_or_skip(bench_model, claim, text), text)
 
 
 def test_sanity_warnings(bench_model, bench_session) -> None:
