@@ -150,23 +150,15 @@ def binomial_tail(k: int, n: int, p: float) -> float:
 
 
 def group_edge_excess(cells: Sequence[tuple[int, Sequence[int]]], group_size: int) -> dict:
-    """Points on frame-group edges against their expectation if the same points fell uniformly at random."""
-    observed = total = 0
-    expected = 0.0
-    for n_frames, points in cells:
-        if n_frames < 2:
-            continue
-        edges = set(range(group_size - 1, n_frames - 1, group_size))
-        observed += sum(1 for j in points if j in edges)
-        total += len(points)
-        expected += len(points) * len(edges) / (n_frames - 1)
-    p = binomial_tail(observed, total, expected / total) if total and expected else 1.0
+    """Points on frame-group edges (after frames k - 1, 2k - 1, ...: the lattice of period k at offset k - 1)
+    against their expectation if the same points fell uniformly at random."""
+    e = lattice_excess(cells, group_size, group_size - 1)
     return {
-        "points": total,
-        "on_edges": observed,
-        "expected": expected,
-        "ratio": observed / expected if expected else None,
-        "p_value": float(p),
+        "points": e["points"],
+        "on_edges": e["on_lattice"],
+        "expected": e["expected"],
+        "ratio": e["ratio"],
+        "p_value": e["p_value"],
     }
 
 

@@ -73,6 +73,12 @@ def random_masks(n_positions: int, k: int, draws: int, seed: int) -> np.ndarray:
     return out
 
 
+def _mean_scores(pos: np.ndarray, truth: Truth, metrics: Sequence[str]) -> dict[str, float]:
+    tols = sorted({int(m.removeprefix("f1_tol")) for m in metrics if m.startswith("f1_tol")})
+    scores = score_positions(pos, np.full(len(pos), pos.shape[1], dtype=np.int64), truth, tols)
+    return {m: math.fsum(scores[m].tolist()) / len(pos) for m in metrics}
+
+
 def chance_random(
     truth: Truth, k: int, metrics: Sequence[str] = CHANCE_METRICS, draws: int = CHANCE_DRAWS, seed: int = CHANCE_SEED
 ) -> dict[str, float]:
@@ -88,9 +94,7 @@ def chance_random(
         pos = np.fromiter(combos, np.int64, count=math.comb(n_pos, k) * k).reshape(math.comb(n_pos, k), k)
     else:
         pos = random_positions(n_pos, k, draws, seed)
-    tols = sorted({int(m.removeprefix("f1_tol")) for m in metrics if m.startswith("f1_tol")})
-    scores = score_positions(pos, np.full(len(pos), k, dtype=np.int64), truth, tols)
-    return {m: math.fsum(scores[m].tolist()) / len(pos) for m in metrics}
+    return _mean_scores(pos, truth, metrics)
 
 
 def chance_is_exact(n_frames: int, k: int, draws: int = CHANCE_DRAWS) -> bool:
@@ -149,12 +153,6 @@ def chance_periodic(truth: Truth, k: int, metrics: Sequence[str] = CHANCE_METRIC
 
 
 GROUP_DRAWS = 2000  # the group-edge baseline's seeded draws of the points beyond the edges, when more sets exist
-
-
-def _mean_scores(pos: np.ndarray, truth: Truth, metrics: Sequence[str]) -> dict[str, float]:
-    tols = sorted({int(m.removeprefix("f1_tol")) for m in metrics if m.startswith("f1_tol")})
-    scores = score_positions(pos, np.full(len(pos), pos.shape[1], dtype=np.int64), truth, tols)
-    return {m: math.fsum(scores[m].tolist()) / len(pos) for m in metrics}
 
 
 def chance_groups(
