@@ -13,7 +13,15 @@ from vlmproprio.options import FIXTURES_HELP, split_list
 def cmd_verify(args: argparse.Namespace) -> int:
     from vlmproprio.summary import fixture_summary, format_summary
 
-    print(format_summary(fixture_summary(fixtures_of(args))))
+    root = fixtures_of(args)
+    print(format_summary(fixture_summary(root)))
+    if args.set is not None:
+        from vlmproprio.record.named_sets import SetDigestError, check_digests
+
+        check = check_digests(root, args.set)
+        if not check.ok:
+            raise SetDigestError(check.message(root))
+        print(check.message(root))
     return 0
 
 
@@ -28,10 +36,14 @@ def cmd_manifest(args: argparse.Namespace) -> int:
 def cmd_record(args: argparse.Namespace) -> int:
     from vlmproprio.record.recorder import record_all
 
+    if args.set is not None:
+        return _record_named_set(args)
+    if args.write_digests:
+        raise UsageError("record --write-digests goes with --set NAME")
     if args.task is not None:
         return _record_new_set(args)
     if args.out is not None or args.count is not None or args.seed is not None:
-        raise UsageError("record --out, --count and --seed make a new set: give --task too")
+        raise UsageError("record --out, --count and --seed make a new set: give --task too (or --set NAME)")
     fixtures = fixtures_of(args, must_exist=False)
     sheets = args.contact_sheets or Path("runs") / "contact_sheets"
     record_all(fixtures, episode_ids=split_list(args.episodes) or None, contact_sheets=sheets)
@@ -55,6 +67,29 @@ def _record_new_set(args: argparse.Namespace) -> int:
         workers=workers,
         max_steps=args.max_steps,
         progress=not args.no_progress,
+    )
+    return 0
+
+
+def _record_named_set(args: argparse.Namespace) -> int:
+    from vlmproprio.parallel import parse_workers
+    from vlmproprio.record.named_sets import record_named
+
+    if args.task is not None or args.count is not None or args.seed is not None or args.episodes:
+        raise UsageError(
+            "record --set NAME records that set's own tasks, counts and seeds: drop --task, --count, "
+            "--seed and --episodes"
+        )
+    if args.out is None:
+        raise UsageError(f"record --set {args.set} needs --out DIR")
+    workers = parse_workers(args.workers, "record --workers") if args.workers is not None else 1
+    record_named(
+        args.set,
+        args.out,
+        workers=workers,
+        max_steps=args.max_steps,
+        progress=not args.no_progress,
+        update_digests=args.write_digests,
     )
     return 0
 
@@ -92,6 +127,12 @@ def add_fixture_commands(sub) -> None:
     """verify, manifest, record: the fixture folder itself."""
     p = command(sub, "verify", cmd_verify)
     add_fixtures(p)
+    p.add_argument(
+        "--set",
+        metavar="NAME",
+        help="also check the episodes against the committed digests of this "
+        "named set (record/named_sets.json: extended)",
+    )
     p = command(sub, "manifest", cmd_manifest)
     add_fixtures(p)
     p = command(sub, "record", cmd_record)
@@ -109,6 +150,18 @@ def add_fixture_commands(sub) -> None:
 def add_new_set_options(p) -> None:
     """record --task T --count N --seed S --out DIR: a new episode set (vlmproprio.record.sets)."""
     g = p.add_argument_group("a new episode set (instead of re-recording the shipped episodes)")
+    g.add_argument(
+        "--set",
+        metavar="NAME",
+        help="a named set of record/named_sets.json (extended: 216 episodes), "
+        "recorded into --out and checked against its committed digests",
+    )
+    g.add_argument(
+        "--write-digests",
+        action="store_true",
+        help="with --set: write the set's committed digests "
+        "from this recording instead of checking it (maintainers, in a source checkout)",
+    )
     g.add_argument("--task", help="task family of record/catalog.json: door | pick_place | stack")
     g.add_argument("--count", type=int, help="episodes in the set")
     g.add_argument("--seed", type=int, help="first robosuite seed of the set (default 0): slot k tries seed S+k first")

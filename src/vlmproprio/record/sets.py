@@ -57,10 +57,15 @@ def record_into(plan: SlotPlan, out: Path, max_steps: int | None = None) -> Slot
     return SlotDone(plan.episode_id, rec.meta["seed"], rec.meta["steps"], len(rec.images), rec.wall_s, skipped)
 
 
-def _set_doc(task: str, count: int, seed: int, max_steps: int | None) -> dict:
+def set_doc(task: str, count: int, seed: int, max_steps: int | None) -> dict:
+    """What ``DIR/recording.json`` says of a set (task, count, seed), and the versions that recorded it."""
+    return with_versions({"task": task, "count": count, "seed": seed}, max_steps)
+
+
+def with_versions(doc: dict, max_steps: int | None) -> dict:
     from vlmproprio.record.recorder import versions
 
-    doc = {"task": task, "count": count, "seed": seed, "versions": versions()}
+    doc = {**doc, "versions": versions()}
     if max_steps is not None:
         doc["max_steps"] = max_steps
     return doc
@@ -73,10 +78,10 @@ def _prepare(out: Path, doc: dict) -> None:
     if path.is_file():
         old = load_json(path, error=UsageError)
         old = old if isinstance(old, dict) else {}
-        if {k: old.get(k) for k in doc} != doc:
+        if old != doc:  # another task, count, seed, --max-steps or robosuite/MuJoCo version
             raise UsageError(
                 f"{out} holds another episode set ({path}: {json.dumps(old, sort_keys=True)}); record into "
-                "another --out, or run with the same --task, --count and --seed to resume it"
+                "another --out, or run with the same --set, or --task, --count and --seed, to resume it"
             )
     else:
         atomic_write_text(path, json.dumps(doc, indent=1, sort_keys=True) + "\n")
@@ -130,16 +135,31 @@ def record_set(
 ) -> list[SlotDone]:
     """Record the slots of (task, count, seed) missing from ``out``, rewrite its manifest, return what was
     recorded now. ``max_steps`` cuts every episode short, unjudged (tests and timing)."""
+    plans = set_plan(task, count, seed)
+    doc = set_doc(task, count, seed, max_steps)
+    return record_plans(plans, Path(out), doc, workers=workers, max_steps=max_steps, progress=progress, desc=task)
+
+
+def record_plans(
+    plans: list[SlotPlan],
+    out: Path,
+    doc: dict,
+    *,
+    workers: int = 1,
+    max_steps: int | None = None,
+    progress: bool = True,
+    desc: str = "",
+) -> list[SlotDone]:
+    """Record the slots of ``plans`` missing from ``out`` (a folder whose recording.json is ``doc``, or a new
+    one), rewrite its manifest, return what was recorded now, sorted by episode id."""
     from tqdm import tqdm
 
-    out = Path(out)
-    plans = set_plan(task, count, seed)
-    _prepare(out, _set_doc(task, count, seed, max_steps))
+    _prepare(out, doc)
     todo = missing_slots(out, plans)
     results: list[SlotDone] = []
     t0 = time.perf_counter()
     with tqdm(
-        total=len(plans), initial=len(plans) - len(todo), desc=f"recording {task}", unit="episode", disable=not progress
+        total=len(plans), initial=len(plans) - len(todo), desc=f"recording {desc}", unit="episode", disable=not progress
     ) as bar:
         if workers <= 1 or len(todo) <= 1:
             _run_serial(todo, out, max_steps, bar, results)
