@@ -79,7 +79,7 @@ def test_minimal_detectable_rate_is_where_the_power_crosses_80_percent():
 
 def test_cli_writes_curves_and_states_the_minimal_effects(tmp_path, capsys):
     out = tmp_path / "power"
-    assert main(["power", "--sims", "20", "--out", str(out)]) == 0
+    assert main(["power", "--sims", "20", "--set", "shipped", "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "Minimal detectable effects at 80 % power" in text and "| door | 10 |" in text
     data = json.loads((out / "power.json").read_text())
@@ -87,6 +87,40 @@ def test_cli_writes_curves_and_states_the_minimal_effects(tmp_path, capsys):
     assert data["words"]["difference"] == pytest.approx(10.25)
     png = (out / "power_curves.png").read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+
+
+def test_the_extended_set_is_analysed_beside_the_shipped_one_and_detects_60_vs_30(tmp_path, capsys):
+    from vlmproprio.power import set_groups
+
+    assert set_groups("extended") == {
+        "extended/door": 60,
+        "extended/pick_place": 96,
+        "extended/stack": 60,
+        "extended/all": 216,
+    }
+    out = tmp_path / "power"
+    assert main(["power", "--sims", "20", "--out", str(out)]) == 0  # default: both sets
+    text = capsys.readouterr().out
+    assert "| door | 10 |" in text and "| extended/all | 216 |" in text
+    data = json.loads((out / "power.json").read_text())
+    correct = data["correctness"]
+    assert (correct["p"], correct["q"]) == (0.6, 0.3)
+    assert correct["power"]["extended/all"] >= 0.8 > correct["power"]["all"]  # the issue's target, and why
+    assert correct["episodes_needed"] > 22
+    assert main(["power", "--set", "nope", "--out", str(out)]) == 2
+    assert "unknown episode set 'nope'" in capsys.readouterr().err
+
+
+def test_the_test_above_62_episodes_draws_the_patterns_stats_draws():
+    """Over 62 episodes a pattern is n coin flips, not one integer's bits: the simulation's p-values must still
+    be the suite's own, one by one."""
+    import numpy as np
+
+    from vlmproprio.power import sign_flip_p_many
+    from vlmproprio.stats import sign_flip_p
+
+    d = np.random.default_rng(3).normal(0.1, 1.0, size=(4, 216))
+    assert sign_flip_p_many(d).tolist() == [sign_flip_p(row)[0] for row in d]
 
 
 def test_cli_refuses_bad_settings_in_one_line(tmp_path, capsys):

@@ -6,7 +6,9 @@ reader asks before trusting a "not supported": *if* a model had an effect of a g
 the suite see it?
 
 * **Episode structure.** The shipped fixtures: 10 Door and 12 bin episodes, compared per task and pooled
-  (22), each episode paired with itself across conditions (``GROUPS``).
+  (22), each episode paired with itself across conditions (``GROUPS``); a named set of
+  ``record/named_sets.json`` by its parts' tasks and pooled (``set_groups``: the extended set's 60 Door, 96
+  pick-place and 60 Stack episodes, 216 pooled).
 * **The test.** Exactly the suite's: the exact distribution over all 2**n sign patterns for
   n <= ``stats.DEFAULT_MAX_EXACT`` episodes (``stats.exact_sign_flip_p`` itself), else
   ``stats.DEFAULT_N_PERM`` random patterns drawn as ``stats.sign_flip_p`` draws them (same seed), and the
@@ -53,6 +55,24 @@ from vlmproprio.stats import (
 )
 
 GROUPS: dict[str, int] = {"door": 10, "pick_place": 12, "all": 22}
+SHIPPED = "shipped"  # the set GROUPS describes; a named set of record/named_sets.json is the other kind
+
+
+def set_groups(name: str) -> dict[str, int]:
+    """The groups of an episode set: the shipped one's (``GROUPS``), or a named set's tasks and all of them,
+    each as ``<set>/<task>`` so that two sets can be analysed side by side."""
+    if name == SHIPPED:
+        return dict(GROUPS)
+    from vlmproprio.record.named_sets import named_set
+
+    ns = named_set(name)
+    groups: dict[str, int] = {}
+    for part in ns.parts:
+        groups[f"{name}/{part.task}"] = groups.get(f"{name}/{part.task}", 0) + part.count
+    groups[f"{name}/all"] = ns.count
+    return groups
+
+
 TARGET_POWER = 0.8
 # The paper's mean final-instruction length without and with state (GPT-4V, Table II): 25.2 -> 35.45 words.
 PAPER_WORDS = (25.2, 35.45)
@@ -92,17 +112,19 @@ class PowerSettings:
 
 
 def sign_patterns(n: int, n_perm: int = DEFAULT_N_PERM, seed: int = DEFAULT_SEED) -> np.ndarray:
-    """The ``n_perm`` random +-1 sign patterns ``stats.sign_flip_p`` draws for n > max_exact episodes."""
-    if n > 62:
-        raise UsageError(f"power simulation supports at most 62 episodes per group, got {n}")
+    """The ``n_perm`` random +-1 sign patterns ``stats.sign_flip_p`` draws for n > max_exact episodes (patterns x
+    episodes): one random integer a pattern up to 62 episodes, its bits the signs; above, n draws of 0 or 1."""
     rng = np.random.Generator(np.random.PCG64(seed + 1))
     parts, done = [], 0
     while done < n_perm:  # the same draws, in the same chunks, as stats.sign_flip_p
         m = min(1 << 16, n_perm - done)
-        parts.append(rng.integers(0, 1 << n, size=m, dtype=np.int64))
+        if n <= 62:
+            codes = rng.integers(0, 1 << n, size=m, dtype=np.int64)
+            parts.append(1.0 - 2.0 * ((codes[:, None] >> np.arange(n, dtype=np.int64)) & 1))
+        else:
+            parts.append(1.0 - 2.0 * rng.integers(0, 2, size=(m, n)))
         done += m
-    codes = np.concatenate(parts)
-    return 1.0 - 2.0 * ((codes[:, None] >> np.arange(n, dtype=np.int64)) & 1)
+    return np.concatenate(parts)
 
 
 def sign_flip_p_many(

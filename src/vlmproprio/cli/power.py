@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from vlmproprio.cli.arguments import command
+from vlmproprio.cli.arguments import add_list, command
+from vlmproprio.options import split_list
 
 
 def cmd_power(args: argparse.Namespace) -> int:
@@ -18,8 +19,12 @@ def cmd_power(args: argparse.Namespace) -> int:
         n_sims=base.n_sims if args.sims is None else args.sims,
         seed=base.seed if args.seed is None else args.seed,
     )
+    groups: dict[str, int] = {}
+    for name in split_list(args.set) or [power.SHIPPED, "extended"]:
+        groups |= power.set_groups(name)
     analysis = power.analyse(
         settings,
+        groups=groups,
         words=power.PAPER_WORDS if args.words is None else tuple(args.words),
         sd_words=power.DEFAULT_SD_WORDS if args.sd_words is None else args.sd_words,
         sd_f1=power.DEFAULT_SD_F1 if args.sd_f1 is None else args.sd_f1,
@@ -33,6 +38,13 @@ def cmd_power(args: argparse.Namespace) -> int:
 
 def add_power(sub) -> None:
     p = command(sub, "power", cmd_power)
+    add_list(
+        p,
+        "--set",
+        "episode sets to analyse side by side: shipped (10 Door + 12 bin) and the named sets of "
+        "record/named_sets.json, a comma list or repeated (default: shipped, extended)",
+        "SETS",
+    )
     p.add_argument("--alpha", type=float, help="family-wise alpha (default 0.05)")
     p.add_argument(
         "--family", type=int, help="primary hypotheses corrected together with Holm (default 4, as in claims.yml)"

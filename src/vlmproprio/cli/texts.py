@@ -92,9 +92,10 @@ TEXTS: dict[str, tuple[str, str | None]] = {
         "leaderboard.md, leaderboard.png (the differences with their CIs) and leaderboard.json.",
     ),
     "power": (
-        "what 10 Door + 12 bin episodes can detect: power curves and minimal detectable effects",
-        "Simulate the suite's paired test (exact sign-flip, stats.py) over the episode structure "
-        "(10 Door, 12 bins, 22 pooled) for effects of known size, at Holm's first-step level alpha / family. "
+        "what the shipped 22 and the extended 216 episodes can detect: power curves, minimal detectable effects",
+        "Simulate the suite's paired test (sign-flip, stats.py) over each set's episode structure "
+        "(shipped: 10 Door, 12 bins, 22 pooled; extended: 60 Door, 96 pick-place, 60 Stack, 216 pooled) for "
+        "effects of known size, at Holm's first-step level alpha / family. "
         "Writes power.json, power.md and power_curves.png to --out.",
     ),
     "export-dataset": (
