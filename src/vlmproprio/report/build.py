@@ -8,7 +8,7 @@ from pathlib import Path
 
 from vlmproprio.episodes import Episode
 from vlmproprio.io import atomic_write_text, make_dirs
-from vlmproprio.report.data import TASK_LABELS, ReportError, RunScores, load_run_scores
+from vlmproprio.report.data import ReportError, RunScores, load_run_scores, paper_figure, task_label
 from vlmproprio.report.page import (
     FRAMES_DIR,
     LEGEND,
@@ -169,16 +169,16 @@ def write_plots(
         )
         for eid in example_episodes(s, examples):
             task = s.task_of(eid)
-            num = "7" if task == "door" else "8"
+            num = paper_figure(task)  # the paper's figure for its two tasks; any other task's is unnumbered
             captions = {c: _frame_texts(t) for c in trace_conds if (t := transcripts.get((model, eid, c)))}
-            f = f"fig{num}_trace_{_safe(eid)}__{m}.png"
+            f = f"fig{num if num else ''}_trace_{_safe(eid)}__{m}.png"
             save_figure(trace_figure(s, model, eid, trace_conds, captions), out / f)
             plots.append(
                 Plot(
                     model,
                     "trace",
                     f,
-                    f"Fig. {num} — segmentation of {eid} ({TASK_LABELS.get(task or '', task)}, {model})",
+                    f"{f'Fig. {num} — s' if num else 'S'}egmentation of {eid} ({task_label(task)}, {model})",
                     f"Cosine similarity of consecutive frame captions under {' and '.join(trace_conds)}; dashed: "
                     f"the threshold {thr:g}; red points: segmentation points, each labelled with the caption that "
                     "starts there; grey bands: true phase changes.",

@@ -6,7 +6,10 @@ here, so a report always shows the numbers the scores hold.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
+from functools import cache
+from importlib import resources
 from pathlib import Path
 
 from vlmproprio.errors import VlmproprioError
@@ -16,8 +19,40 @@ from vlmproprio.transcripts import cell_key
 SCORES_DIR = "scores"
 # the score files a report needs; sweep.json (per episode) is left out: the plots use the means
 SCORE_FILES = ("rows", "aggregate", "sweep_aggregate", "paired", "audit", "traces", "meta", "verdicts")
-TASK_ORDER = ("door", "pick_place", "all")
-TASK_LABELS = {"door": "Door opening", "pick_place": "Bin pick-placing", "all": "All episodes"}
+TASKS_FILE = "tasks.json"  # labels and paper figures of tasks, as data (report/tasks.json)
+
+
+@cache
+def _task_table() -> dict[str, dict]:
+    raw = resources.files("vlmproprio").joinpath("report", TASKS_FILE).read_text()
+    try:
+        tasks = json.loads(raw)["tasks"]
+        return {str(t): dict(v) for t, v in tasks.items()}
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ReportError(f"vlmproprio/report/{TASKS_FILE}: malformed ({exc!r})") from exc
+
+
+def task_label(task: str | None) -> str:
+    """The report's name of a task ("Door opening"); a task report/tasks.json does not list is named from its
+    own name ("nut_assembly" -> "Nut assembly")."""
+    if not task:
+        return ""
+    entry = _task_table().get(task)
+    return str(entry["label"]) if entry and "label" in entry else task.replace("_", " ").capitalize()
+
+
+def paper_figure(task: str | None) -> int | None:
+    """The number of the paper's figure that shows this task's segmentation traces, None for a task it has not."""
+    entry = _task_table().get(task or "") or {}
+    return int(entry["paper_figure"]) if "paper_figure" in entry else None
+
+
+def task_order(tasks: set[str]) -> list[str]:
+    """Tasks in report order: the paper's first (by figure), the listed ones next in their file order, then any
+    other in name order; "all" is not a task and is left out."""
+    listed = [t for t in _task_table() if t in tasks and t != "all"]
+    listed.sort(key=lambda t: (paper_figure(t) is None, paper_figure(t) or 0))
+    return listed + sorted(tasks - set(listed) - {"all"})
 
 
 class ReportError(VlmproprioError):
@@ -49,7 +84,7 @@ class RunScores:
 
     def tasks(self, with_all: bool = False) -> list[str]:
         present = {r["task"] for r in self.rows}
-        tasks = [t for t in TASK_ORDER if t in present] + sorted(present - set(TASK_ORDER))
+        tasks = task_order(present)
         return [*tasks, "all"] if with_all and len(tasks) > 1 else tasks
 
     @property

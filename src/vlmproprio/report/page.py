@@ -18,7 +18,7 @@ from pathlib import Path
 
 from vlmproprio.episodes import Episode
 from vlmproprio.io import atomic_write_bytes
-from vlmproprio.report.data import TASK_LABELS, RunScores
+from vlmproprio.report.data import RunScores, task_label
 from vlmproprio.report.plots import Plot
 from vlmproprio.report.tables import Table, fmt_value
 from vlmproprio.scoring import ITEMS
@@ -414,9 +414,7 @@ def run_facts(s: RunScores) -> list[tuple[str, str]]:
         (
             "episodes",
             f"{len(s.episodes)} ("
-            + ", ".join(
-                f"{TASK_LABELS.get(t, t)}: {sum(1 for e in s.episodes if s.task_of(e) == t)}" for t in s.tasks()
-            )
+            + ", ".join(f"{task_label(t)}: {sum(1 for e in s.episodes if s.task_of(e) == t)}" for t in s.tasks())
             + ")",
         ),
         ("conditions", ", ".join(s.conditions)),

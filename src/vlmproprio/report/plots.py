@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from vlmproprio.report.data import TASK_LABELS, RunScores
+from vlmproprio.report.data import RunScores, task_label
 from vlmproprio.scoring import ITEMS
 from vlmproprio.transcripts import cell_key
 
@@ -103,7 +103,7 @@ def success_rates_figure(s: RunScores, model: str):
             ax.bar(xs, correct, width, color=colour, hatch=hatch, edgecolor="white", linewidth=0.5)
         ax.set_xticks(range(len(ITEMS)), ITEMS)
         ax.set_ylim(0, 105)
-        ax.set_title(f"{TASK_LABELS.get(task, task)} (n={_n_episodes(s, model, task)})", fontsize=10)
+        ax.set_title(f"{task_label(task)} (n={_n_episodes(s, model, task)})", fontsize=10)
         ax.grid(axis="y", alpha=0.3)
         ax.set_axisbelow(True)
     axes[0].set_ylabel("final captions (%)")
@@ -144,7 +144,7 @@ def sweep_figure(s: RunScores, model: str, metric: str, ylabel: str, title: str,
         ax.axvline(s.threshold, color="black", ls=":", lw=1)
         ax.set_xlabel("cosine similarity threshold")
         ax.set_xlim(0, 1)
-        ax.set_title(f"{TASK_LABELS.get(task, task)} (n={_n_episodes(s, model, task)})", fontsize=10)
+        ax.set_title(f"{task_label(task)} (n={_n_episodes(s, model, task)})", fontsize=10)
         ax.grid(alpha=0.3)
     axes[0].set_ylabel(ylabel)
     fig.legend(*axes[0].get_legend_handles_labels(), loc="outside right upper", fontsize=8, frameon=False)
@@ -212,5 +212,5 @@ def trace_figure(s: RunScores, model: str, episode_id: str, conditions: Sequence
         ax.set_ylabel("cos sim")
         ax.grid(alpha=0.3)
     axes[-1].set_xlabel("caption pair j (frame j vs frame j+1); grey bands: true phase changes")
-    fig.suptitle(f"{TASK_LABELS.get(task, task)}: {episode_id} — {model}", fontsize=11)
+    fig.suptitle(f"{task_label(task)}: {episode_id} — {model}", fontsize=11)
     return fig

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 from vlmproprio.conditions import BASELINE
 from vlmproprio.evaluation.metrics import BY_NAME, headline_metrics, report_columns
-from vlmproprio.report.data import TASK_LABELS, RunScores
+from vlmproprio.report.data import RunScores, task_label
 
 RATE_SUFFIXES = ("_mentioned", "_correct", "_wrong", "_missing")
 # the aggregate tables' columns and their labels come from the metric table (vlmproprio.evaluation.metrics)
@@ -451,7 +451,7 @@ def markdown_report(s: RunScores, tables: Sequence[Table], plots: Sequence[tuple
         *(f"- {line}" for line in verdict_lines(s)),
         "",
         f"- models: {', '.join(s.models)}",
-        f"- episodes: {len(s.episodes)} ({', '.join(f'{TASK_LABELS.get(t, t)}: {sum(1 for e in s.episodes if s.task_of(e) == t)}' for t in s.tasks())})",
+        f"- episodes: {len(s.episodes)} ({', '.join(f'{task_label(t)}: {sum(1 for e in s.episodes if s.task_of(e) == t)}' for t in s.tasks())})",
         f"- conditions: {', '.join(s.conditions)}",
         f"- mode: {m.get('mode', '?')}, prompt version: {s.prompt_version or '?'}",
         f"- sentence encoder: {enc.get('name', '?')} ({enc.get('dim', '?')}-d), threshold {s.threshold:g}",
