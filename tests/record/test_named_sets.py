@@ -38,6 +38,13 @@ def test_the_extended_set_is_216_balanced_episodes_on_seeds_no_one_else_uses():
     assert len({p.episode_id for p in plans}) == 216
 
 
+def test_the_extended_set_has_committed_digests_for_every_episode():
+    doc = named_sets.committed_digests("extended")
+    assert sorted(doc["episodes"]) == sorted(p.episode_id for p in named_set("extended").plans())
+    assert all(len(d) == 64 for d in doc["episodes"].values())
+    assert {"robosuite", "mujoco"} <= set(doc["versions"])
+
+
 def test_unknown_set_and_conflicting_options_are_refused(capsys):
     from vlmproprio.cli import main
 
