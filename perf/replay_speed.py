@@ -68,14 +68,15 @@ def _start(
     files: contextlib.ExitStack,
     episodes: Sequence[str] = (),
     code: Path = ROOT,
+    fixtures: Path | None = None,
 ):
-    """The driver of checkout ``code`` started on ``episodes`` (default: all); its stdout and stderr go to
-    temporary files in ``files``."""
+    """The driver of checkout ``code`` started on ``episodes`` (default: all) of ``fixtures`` (default: the
+    checkout's own); its stdout and stderr go to temporary files in ``files``."""
     env = {**os.environ, "VLMPROPRIO_CACHE": str(cache_root), "PYTHONPATH": str(code / "src")}
     # closed by the caller's ExitStack, after _finish has read them
     stdout = files.enter_context(tempfile.TemporaryFile())  # noqa: SIM115
     stderr = files.enter_context(tempfile.TemporaryFile())  # noqa: SIM115
-    fixtures = code / FIXTURES.relative_to(ROOT)
+    fixtures = fixtures or code / FIXTURES.relative_to(ROOT)
     argv = [sys.executable, "-c", DRIVER, model, str(out), str(fixtures), *([",".join(episodes)] if episodes else [])]
     return subprocess.Popen(argv, stdout=stdout, stderr=stderr, env=env), stdout, stderr
 
@@ -92,10 +93,10 @@ def _finish(model: str, proc: subprocess.Popen, stdout, stderr) -> dict:
     return res | {"cpu_s": usage.ru_utime + usage.ru_stime, "peak_rss_mb": usage.ru_maxrss / 1024}
 
 
-def measure(model: str, cache_root: Path, out: Path, code: Path = ROOT) -> dict:
+def measure(model: str, cache_root: Path, out: Path, code: Path = ROOT, fixtures: Path | None = None) -> dict:
     t = time.perf_counter()
     with contextlib.ExitStack() as files:
-        res = _finish(model, *_start(model, cache_root, out, files, code=code))
+        res = _finish(model, *_start(model, cache_root, out, files, code=code, fixtures=fixtures))
     return res | {"wall_s": time.perf_counter() - t}
 
 

@@ -8,9 +8,9 @@ import dataclasses
 
 import pytest
 
+from scoring_helpers import bin_episode
 from vlmproprio.record.catalog import families
 from vlmproprio.scoring.rubric import score_caption
-from scoring_helpers import bin_episode
 
 CASES = [
     (task, obj.name, other.name)
