@@ -91,6 +91,28 @@ def test_transcripts_and_statistics_are_those_of_one_process(tmp_path, splits):
     assert [m["stats"] for m in run_file["models"]] == [m.stats for m in one]
 
 
+def test_a_set_larger_than_a_block_is_captioned_block_by_block_to_the_same_transcripts(
+    tmp_path, splits, monkeypatch
+):
+    """A set is read and captioned EPISODES_PER_BLOCK episodes at a time (memory bounded by a block, not the
+    set): the transcripts, their files and the statistics are the same as in one block."""
+    _, whole = _run(tmp_path, "whole", 2)
+    monkeypatch.setattr(runner, "EPISODES_PER_BLOCK", 5)
+    read = []
+    real_images = runner.episode_images
+    monkeypatch.setattr(runner, "episode_images", lambda eps: read.append(len(eps)) or real_images(eps))
+    splits.clear()
+    _, blocks = _run(tmp_path, "blocks", 2)
+    assert read == [5, 5, 5, 5, 2] * 2  # per model: 22 episodes in blocks of 5, each block's images read once
+    assert [s["episodes"] for s in splits] == [5, 5, 5, 5, 2] * 2
+    assert [m.stats for m in blocks] == [m.stats for m in whole]
+    for a, b in zip(whole, blocks, strict=True):
+        assert [_without_latency(t.to_dict()) for t in a.transcripts] == [
+            _without_latency(t.to_dict()) for t in b.transcripts
+        ]
+    assert _files(tmp_path / "blocks") == _files(tmp_path / "whole")
+
+
 def test_answering_with_a_cache_is_never_split(tmp_path, splits):
     plan = RunPlan(
         models=("reference",),

@@ -291,11 +291,13 @@ def caption_episodes(
     chunk: int = DEFAULT_CHUNK,
     progress: bool = True,
     images: Mapping[str, Sequence[ImagePart]] | None = None,
+    bar_label: str = "",
 ) -> list[Transcript]:
     """Run Processes 1-3 for every (episode, condition); one Transcript each, in episode-major order.
 
     ``peers`` are the episodes the ``both_shuffled`` control may borrow states from (default: ``episodes``);
-    ``images``: ``episode_images`` of at least ``episodes``, when the caller has read them already."""
+    ``images``: ``episode_images`` of at least ``episodes``, when the caller has read them already; ``bar_label``
+    is added to the progress bar's name (which block of a larger set this is)."""
     from tqdm import tqdm
 
     peers = episodes if peers is None else peers
@@ -307,7 +309,7 @@ def caption_episodes(
     total = sum(2 * len(r.groups) + 1 for r in runs)
     # no bar at all without progress, not a disabled one: tqdm takes its class lock even then, and a forked
     # worker (vlmproprio.runner) could inherit that lock held by the parent's tqdm monitor thread
-    bar_or_none = tqdm(total=total, desc=f"captioning ({model})", unit="req") if progress else nullcontext()
+    bar_or_none = tqdm(total=total, desc=f"captioning ({model}{bar_label})", unit="req") if progress else nullcontext()
     with bar_or_none as bar:
         answers = iter(_answer_in_chunks([q for r in runs for q in r.p1_requests()], answer, chunk, bar))
         for r in runs:
