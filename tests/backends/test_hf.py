@@ -175,6 +175,41 @@ def test_bad_settings_and_inputs_are_clear_errors(tiny_qwen2vl_backend, tiny_qwe
         tiny_qwen2vl_backend.generate([broken])
 
 
+def test_a_prompt_past_the_models_context_is_refused_before_generating(
+    tiny_qwen2vl_dir, tmp_path, request_factory, png_factory
+):
+    """The context comes from the model's own config: a copy of the tiny build whose config says 64 positions
+    refuses a five-image Process-1 request, naming the request, its tokens, the context and the fix; the real
+    build (32,768) answers the same request."""
+    import json
+
+    from vlmproprio.backends.hf import HFBackend
+
+    short = tmp_path / "short"
+    shutil.copytree(tiny_qwen2vl_dir, short)
+    config = json.loads((short / "config.json").read_text())
+    config["text_config"]["max_position_embeddings"] = 64
+    (short / "config.json").write_text(json.dumps(config))
+    request = request_factory(
+        P1_TEXT,
+        tuple(png_factory(j) for j in range(5)),
+        config=GenerationConfig(max_new_tokens=4),
+        tag=RequestTag("bin2_01", "both", "p3", -1),
+    )
+    backend = HFBackend(short, model_id="tiny-short", device="cpu", dtype="float32", threads=1)
+    assert backend.context_length() == 64
+    with pytest.raises(
+        BackendError,
+        match=r"tiny-short \(qwen2_vl\): p3 of bin2_01 / both is \d+ prompt tokens "
+        r"\(5 images\) \+ 4 new, past the model's context of 64 tokens; .*--max-images-p3",
+    ):
+        backend.generate([request])
+    whole = HFBackend(tiny_qwen2vl_dir, model_id="tiny-qwen2-vl", device="cpu", dtype="float32", threads=1)
+    assert whole.context_length() == 32768
+    (answer,) = whole.generate([request])
+    assert answer.meta.prompt_tokens > 64
+
+
 def test_registry_tiny_model_is_built_once_even_when_raced(vlmproprio_home, torch_one_thread):
     from vlmproprio.backends.registry import create_backend
     from vlmproprio.backends.tiny import ensure_tiny_model, tiny_model_dir

@@ -50,7 +50,7 @@ FAMILIES: tuple[str, ...] = (
     "llava-next",
     "idefics2",
 )
-BUILD_VERSION = 2  # 2: the LLaVA build's context holds Process 3 at the image cap
+BUILD_VERSION = 3  # 2: the LLaVA build's context holds Process 3 at the image cap; 3: the Qwen builds' too
 STAMP_FILE = "vlmproprio-tiny.json"
 
 # Order fixes the token ids 0..6 (the real Qwen2 tokenizer has them at 151643..151656).
@@ -221,7 +221,9 @@ def _save_qwen(out: Path, family: str, seed: int) -> None:
         "qwen2.5-vl": (Qwen2_5_VLConfig, Qwen2_5_VLForConditionalGeneration),
     }[family]
     config = config_cls(
-        text_config=_text_config(len(tok), rope_parameters=mrope),
+        # the real models' context (32k for Qwen2-VL, 128k for Qwen2.5-VL) holds Process 3 at the image cap, and
+        # the hf backend refuses a prompt past the config's: 4,096 would refuse the longest fixture episodes
+        text_config=_text_config(len(tok), context=32768, rope_parameters=mrope),
         vision_config={**_QWEN_VISION[family], **_QWEN_PATCHES},
         tie_word_embeddings=False,
         image_token_id=5,
