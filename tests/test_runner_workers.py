@@ -91,9 +91,7 @@ def test_transcripts_and_statistics_are_those_of_one_process(tmp_path, splits):
     assert [m["stats"] for m in run_file["models"]] == [m.stats for m in one]
 
 
-def test_a_set_larger_than_a_block_is_captioned_block_by_block_to_the_same_transcripts(
-    tmp_path, splits, monkeypatch
-):
+def test_a_set_larger_than_a_block_is_captioned_block_by_block_to_the_same_transcripts(tmp_path, splits, monkeypatch):
     """A set is read and captioned EPISODES_PER_BLOCK episodes at a time (memory bounded by a block, not the
     set): the transcripts, their files and the statistics are the same as in one block."""
     _, whole = _run(tmp_path, "whole", 2)
