@@ -184,6 +184,7 @@ def test_a_prompt_past_the_models_context_is_refused_before_generating(
     import json
 
     from vlmproprio.backends.hf import HFBackend
+    from vlmproprio.backends.hf_context import context_length
 
     short = tmp_path / "short"
     shutil.copytree(tiny_qwen2vl_dir, short)
@@ -197,7 +198,8 @@ def test_a_prompt_past_the_models_context_is_refused_before_generating(
         tag=RequestTag("bin2_01", "both", "p3", -1),
     )
     backend = HFBackend(short, model_id="tiny-short", device="cpu", dtype="float32", threads=1)
-    assert backend.context_length() == 64
+    backend.load()
+    assert context_length(backend.model.config) == 64
     with pytest.raises(
         BackendError,
         match=r"tiny-short \(qwen2_vl\): p3 of bin2_01 / both is \d+ prompt tokens "
@@ -205,7 +207,8 @@ def test_a_prompt_past_the_models_context_is_refused_before_generating(
     ):
         backend.generate([request])
     whole = HFBackend(tiny_qwen2vl_dir, model_id="tiny-qwen2-vl", device="cpu", dtype="float32", threads=1)
-    assert whole.context_length() == 32768
+    whole.load()
+    assert context_length(whole.model.config) == 32768
     (answer,) = whole.generate([request])
     assert answer.meta.prompt_tokens > 64
 

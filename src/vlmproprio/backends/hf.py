@@ -44,6 +44,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from vlmproprio.backends.base import Availability, Backend, BackendError
+from vlmproprio.backends.hf_context import check_context
 from vlmproprio.backends.hf_families import missing_library_message, processor_images
 from vlmproprio.backends.hf_files import hf_weights_available, load_processor, resolve_weights
 from vlmproprio.backends.hf_tokens import PromptTokenCounter
@@ -301,7 +302,8 @@ class HFBackend(Backend):
             for k, v in inputs.items()
         }
         prompt_len = inputs["input_ids"].shape[1]
-        self._check_context(requests, inputs["attention_mask"].sum(dim=1).tolist(), cfg.max_new_tokens)
+        prompt_counts = inputs["attention_mask"].sum(dim=1).tolist()
+        check_context(self.weights.model_id, self.model.config, requests, prompt_counts, cfg.max_new_tokens)
         gen = dict(max_new_tokens=cfg.max_new_tokens, **PURE_GREEDY)
         if cfg.min_new_tokens:
             gen["min_new_tokens"] = cfg.min_new_tokens
@@ -314,7 +316,6 @@ class HFBackend(Backend):
         elapsed = time.perf_counter() - t0
         new_tokens = seq[:, prompt_len:]
         decoded = self.processor.tokenizer.batch_decode(new_tokens, skip_special_tokens=True)
-        prompt_counts = inputs["attention_mask"].sum(dim=1).tolist()
         ends = _eos_ids(self.model)
         answers = []
         for row, text, n_prompt in zip(new_tokens.tolist(), decoded, prompt_counts, strict=True):
@@ -335,32 +336,6 @@ class HFBackend(Backend):
             )
             answers.append(Answer(text=text.strip(), meta=meta))
         return answers
-
-    def context_length(self) -> int | None:
-        """The model's context in tokens (its text config's max_position_embeddings), None when it names none."""
-        self.load()
-        text_config = self.model.config.get_text_config()
-        n = getattr(text_config, "max_position_embeddings", None)
-        return int(n) if isinstance(n, int) and n > 0 else None
-
-    def _check_context(self, requests: Sequence[ChatRequest], prompt_tokens: list[int], max_new: int) -> None:
-        """A BackendError before generating when a prompt and its answer do not fit the model's context: past it,
-        positions the model never learnt give answers that look like any other, so nothing would say they are
-        garbage. The message names the request, its tokens, the context and the fix."""
-        context = self.context_length()
-        if context is None:
-            return
-        for request, n in zip(requests, prompt_tokens, strict=True):
-            if n + max_new > context:
-                t = request.tag
-                where = f"{t.stage or 'a request'} of {t.episode_id or '?'} / {t.condition or '?'}"
-                images = len(request.images)
-                raise BackendError(
-                    f"{self.weights.model_id} ({self.model.config.model_type}): {where} is {n} prompt tokens "
-                    f"({images} images) + {max_new} new, past the model's context of {context} tokens; cap the "
-                    "images of Process 3 (--max-images-p3 N) or the answer length (--max-new-tokens), or use a "
-                    "model with a longer context"
-                )
 
     def _chat_text(self, request: ChatRequest) -> str:
         conversation = [
