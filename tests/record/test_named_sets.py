@@ -137,13 +137,21 @@ def test_a_named_set_records_its_parts_into_one_folder_and_is_checked_against_it
     assert [e.episode_id for e in eps] == ["door-s500-000", "stack-s600-000", "stack-s600-001"]
     assert json.loads((first / "recording.json").read_text())["set"] == "small"
 
+    from vlmproprio.cli import main
+
+    by_cli = tmp_path / "by_cli"  # the command line's way in, resumed to nothing the second time
+    argv = ["record", "--set", "small", "--out", str(by_cli), "--max-steps", str(STEPS), "--no-progress"]
+    assert main(argv) == 0
+    assert "recorded 3 episodes" in capsys.readouterr().out
+    assert main([*argv, "--workers", "2"]) == 0
+    assert "recorded 0 episodes" in capsys.readouterr().out
+    assert named_sets.episode_digests(by_cli) == named_sets.episode_digests(first)
+
     again = tmp_path / "again"
     record_plans(
         small_set.plans(), again, with_versions(small_set.doc(), STEPS), workers=2, max_steps=STEPS, progress=False
     )
     assert check_digests(again, "small").ok  # two workers, the same bits
-    from vlmproprio.cli import main
-
     assert main(["verify", "--fixtures", str(again), "--set", "small"]) == 0
     assert "all 3 episodes match the committed digests" in capsys.readouterr().out
     digests = named_sets.digests_path("small")  # the set moved on: another episode where this one was
