@@ -16,12 +16,9 @@ def cmd_verify(args: argparse.Namespace) -> int:
     root = fixtures_of(args)
     print(format_summary(fixture_summary(root)))
     if args.set is not None:
-        from vlmproprio.record.named_sets import SetDigestError, check_digests
+        from vlmproprio.record.named_sets import require_digests
 
-        check = check_digests(root, args.set)
-        if not check.ok:
-            raise SetDigestError(check.message(root))
-        print(check.message(root))
+        print(require_digests(root, args.set).message(root))
     return 0
 
 

@@ -80,12 +80,14 @@ def named_set(name: str) -> NamedSet:
 
 
 def episode_digests(root: Path) -> dict[str, str]:
-    """One digest per episode of the fixture folder ``root``, from its manifest: sha256 over the lines
+    """One digest per episode of the fixture folder ``root``, from its manifest once every file is checked
+    against it (the file hashes a verify in this process made are not made again): sha256 over the lines
     ``<path inside the episode> <sha256>``, in path order."""
-    from vlmproprio.episodes import build_manifest
+    from vlmproprio.episodes import read_manifest, verify_files
 
+    verify_files(root)
     lines: dict[str, list[str]] = {}
-    for rel, sha in build_manifest(root)["files"].items():
+    for rel, sha in read_manifest(root).items():
         parts = rel.split("/", 2)
         if len(parts) == 3 and parts[0] == "episodes":
             lines.setdefault(parts[1], []).append(f"{parts[2]} {sha}\n")
@@ -147,6 +149,14 @@ class DigestCheck:
         return "\n".join(lines)
 
 
+def require_digests(root: Path, name: str) -> DigestCheck:
+    """``check_digests``, a SetDigestError naming what differs when the check fails."""
+    check = check_digests(root, name)
+    if not check.ok:
+        raise SetDigestError(check.message(root))
+    return check
+
+
 def check_digests(root: Path, name: str) -> DigestCheck:
     """Compare the episodes under ``root`` with the committed digests of the named set."""
     committed = committed_digests(name)
@@ -191,8 +201,6 @@ def record_named(
     if update_digests:
         print(f"wrote {write_digests(out, name, versions())}")
         return None
-    check = check_digests(out, name)
-    if not check.ok:
-        raise SetDigestError(check.message(out))
+    check = require_digests(out, name)
     print(check.message(out))
     return check
