@@ -58,13 +58,13 @@ def test_tiny_build_is_sha256_identical_across_builds(tiny_qwen2vl_dir, tmp_path
 
 def test_identity_and_revision(tiny_qwen2vl_backend, tiny_qwen2vl_dir):
     from vlmproprio.backends.hf import HFBackend
-    from vlmproprio.backends.hf_files import weights_sha256
+    from vlmproprio.backends.hf_files import folder_revision
 
     ident = tiny_qwen2vl_backend.identity()
     assert ident == {
         "backend": "hf",
         "model_id": "tiny-qwen2-vl",
-        "revision": weights_sha256(tiny_qwen2vl_dir),
+        "revision": folder_revision(tiny_qwen2vl_dir),
         "dtype": "float32",
         "attn_implementation": "sdpa",
     }

@@ -4,10 +4,12 @@ and its processor.
 Offline only unless asked: weights come from a local folder or the local Hugging Face cache
 (``local_files_only``); ``allow_download`` fetches a repo id missing from the cache.
 
-Weights revision: the snapshot commit hash when the weights come from the HF
-cache, else ``sha256:<hex>`` over the weight files (``*.safetensors``,
-``*.bin``, by relative path), so a local folder, such as a tiny test model,
-gets the same revision on every machine.
+Revision (the cache key's ``revision``): the snapshot commit hash when the model comes from the HF cache (a
+commit covers every file of the repo), else ``sha256:<hex>`` over every file of the folder that decides an
+answer (``folder_revision``): the weights and everything read beside them — config, generation config,
+processor and tokenizer files, chat template, any code the folder ships. An edited chat template or
+preprocessor config is a new revision, so it never replays answers cached under the old one; a local folder,
+such as a tiny test model, gets the same revision on every machine.
 
 Without torchvision (it cannot be installed next to the CPU torch used here),
 ``AutoProcessor`` fails for processors that also declare a video processor
@@ -43,14 +45,52 @@ class ResolvedWeights:
     source: str  # "hf-cache" | "local"
 
 
-def weights_sha256(folder: Path) -> str:
-    """sha256 over (relative path, sha256 of the bytes) of every weight file in ``folder``."""
-    files = sorted(p for p in Path(folder).rglob("*") if p.is_file() and p.name.endswith(WEIGHT_SUFFIXES))
-    if not files:
+# Files that decide no answer: documentation, and the tiny builds' stamp (its build number moves with the
+# project's build code even when no file a model reads does). Hidden files and folders (.git, .cache) too.
+STAMP_FILE = "vlmproprio-tiny.json"  # what built a tiny model (vlmproprio.backends.tiny)
+UNHASHED_NAMES = (STAMP_FILE,)
+_DOCUMENTATION = re.compile(r"^(readme|license|licence|notice|copying)([._-].*)?$|\.md$", re.IGNORECASE)
+# The transformers version that wrote a config is not a setting of the model: a folder saved again by another
+# version, nothing else changed, keeps its revision.
+_WRITER_FIELDS = ("transformers_version",)
+
+
+def _deciding(rel: Path) -> bool:
+    return not (
+        any(part.startswith(".") for part in rel.parts) or rel.name in UNHASHED_NAMES or _DOCUMENTATION.search(rel.name)
+    )
+
+
+def _without_writer(value: object) -> object:
+    if isinstance(value, dict):
+        return {k: _without_writer(v) for k, v in value.items() if k not in _WRITER_FIELDS}
+    if isinstance(value, list):
+        return [_without_writer(v) for v in value]
+    return value
+
+
+def content_sha256(path: Path) -> str:
+    """sha256 of a file's bytes; of a JSON file, of its canonical JSON without the writer's transformers version
+    (a file that does not parse as JSON is hashed as bytes)."""
+    if path.suffix == ".json":
+        try:
+            data = json.loads(path.read_bytes())
+        except (ValueError, UnicodeDecodeError):
+            return sha256_file(path)
+        text = json.dumps(_without_writer(data), sort_keys=True, separators=(",", ":"), ensure_ascii=False)
+        return hashlib.sha256(text.encode()).hexdigest()
+    return sha256_file(path)
+
+
+def folder_revision(folder: Path) -> str:
+    """sha256 over (relative path, content_sha256) of every file in ``folder`` that decides an answer."""
+    folder = Path(folder)
+    files = sorted(p for p in folder.rglob("*") if p.is_file() and _deciding(p.relative_to(folder)))
+    if not any(p.name.endswith(WEIGHT_SUFFIXES) for p in files):
         raise BackendError(f"{folder}: no weight files (*.safetensors or *.bin)")
     h = hashlib.sha256()
     for p in files:
-        h.update(f"{p.relative_to(folder).as_posix()}\0{sha256_file(p)}\n".encode())
+        h.update(f"{p.relative_to(folder).as_posix()}\0{content_sha256(p)}\n".encode())
     return "sha256:" + h.hexdigest()
 
 
@@ -76,7 +116,7 @@ def resolve_weights(
         m = _SNAPSHOT_RE.search(path.as_posix())
         if m:  # a folder inside the HF cache: the commit hash is the revision
             return ResolvedWeights(path, model_id or f"{m['org']}/{m['name']}", m["commit"], "hf-cache")
-        return ResolvedWeights(path, model_id or path.name, weights_sha256(path), "local")
+        return ResolvedWeights(path, model_id or path.name, folder_revision(path), "local")
     if text.startswith(("/", ".", "~")) or not _HF_ID_RE.match(text):
         raise BackendError(f"model folder {text} does not exist")
     from huggingface_hub import snapshot_download

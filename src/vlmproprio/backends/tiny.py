@@ -32,6 +32,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from vlmproprio.backends.base import BackendError
+from vlmproprio.backends.hf_files import STAMP_FILE
 from vlmproprio.episodes import sha256_file
 
 # The first three are built here; the others by vlmproprio.backends.tiny_families (same tokenizer, sizes, layout).
@@ -51,7 +52,6 @@ FAMILIES: tuple[str, ...] = (
     "idefics2",
 )
 BUILD_VERSION = 3  # 2: the LLaVA build's context holds Process 3 at the image cap; 3: the Qwen builds' too
-STAMP_FILE = "vlmproprio-tiny.json"
 
 # Order fixes the token ids 0..6 (the real Qwen2 tokenizer has them at 151643..151656).
 SPECIAL_TOKENS = (

@@ -1,0 +1,82 @@
+"""A local model folder's revision: every file that decides an answer, and nothing that does not."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from vlmproprio.backends.base import BackendError
+from vlmproprio.backends.hf_files import STAMP_FILE, folder_revision, resolve_weights
+
+
+def _model(folder: Path) -> Path:
+    folder.mkdir(parents=True)
+    (folder / "model.safetensors").write_bytes(b"\x00weights")
+    (folder / "config.json").write_text(json.dumps({"model_type": "x", "transformers_version": "5.25.0"}))
+    (folder / "preprocessor_config.json").write_text(json.dumps({"max_pixels": 65536, "min_pixels": 3136}))
+    (folder / "tokenizer.json").write_text('{"model": {"vocab": {"a": 0}}}')
+    (folder / "chat_template.jinja").write_text("{% for m in messages %}{{ m.content }}{% endfor %}")
+    return folder
+
+
+@pytest.mark.parametrize(
+    ("name", "edit"),
+    [
+        ("chat_template.jinja", lambda t: t + "<|assistant|>"),
+        ("preprocessor_config.json", lambda t: t.replace("65536", "262144")),
+        ("tokenizer.json", lambda t: t.replace('"a": 0', '"b": 0')),
+        ("config.json", lambda t: t.replace('"x"', '"y"')),
+        ("model.safetensors", lambda t: t + "!"),
+    ],
+)
+def test_every_file_a_model_reads_is_in_its_revision(tmp_path, name, edit):
+    folder = _model(tmp_path / "m")
+    before = folder_revision(folder)
+    path = folder / name
+    path.write_text(edit(path.read_text(errors="surrogateescape")), errors="surrogateescape")
+    assert folder_revision(folder) != before
+
+
+def test_a_new_file_beside_the_weights_is_a_new_revision(tmp_path):
+    folder = _model(tmp_path / "m")
+    before = folder_revision(folder)
+    (folder / "processing_custom.py").write_text("class P: ...\n")  # a custom processor's code
+    assert folder_revision(folder) != before
+
+
+def test_what_decides_no_answer_keeps_the_revision(tmp_path):
+    folder = _model(tmp_path / "m")
+    before = folder_revision(folder)
+    (folder / "README.md").write_text("# a model card\n")
+    (folder / "LICENSE").write_text("Apache-2.0\n")
+    (folder / ".gitattributes").write_text("*.safetensors filter=lfs\n")
+    (folder / ".cache" / "huggingface").mkdir(parents=True)
+    (folder / ".cache" / "huggingface" / "download.lock").write_text("")
+    (folder / STAMP_FILE).write_text('{"build_version": 99}\n')
+    config = json.loads((folder / "config.json").read_text())
+    config["transformers_version"] = "9.0.0"  # saved again by another transformers, nothing else changed
+    (folder / "config.json").write_text(json.dumps(config, indent=2))  # and formatted otherwise
+    assert folder_revision(folder) == before
+
+
+def test_the_revision_is_the_same_on_every_machine(tmp_path):
+    assert folder_revision(_model(tmp_path / "a")) == folder_revision(_model(tmp_path / "b"))
+    assert resolve_weights(tmp_path / "a").revision == folder_revision(tmp_path / "b")
+
+
+def test_a_json_file_that_does_not_parse_is_hashed_as_bytes(tmp_path):
+    folder = _model(tmp_path / "m")
+    (folder / "added_tokens.json").write_text("{not json")
+    before = folder_revision(folder)
+    (folder / "added_tokens.json").write_text("{not json either")
+    assert folder_revision(folder) != before
+
+
+def test_a_folder_without_weights_is_refused(tmp_path):
+    folder = _model(tmp_path / "m")
+    (folder / "model.safetensors").unlink()
+    with pytest.raises(BackendError, match=r"no weight files"):
+        folder_revision(folder)
+
