@@ -41,6 +41,7 @@ TINY_FAMILY_LABELS: dict[str, str] = {
     "mllama": "Mllama (Llama 3.2 Vision)",
     "llava-next": "LLaVA-NeXT",
     "idefics2": "Idefics2",
+    "smolvlm": "SmolVLM2",
 }
 MAX_NAME_LEN = 200
 _SLUG_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,119}$")
@@ -120,6 +121,13 @@ REGISTRY: dict[str, ModelRef] = {
         ),
         _registered(
             "smolvlm-2.2b", "hf", "HuggingFaceTB/SmolVLM-Instruct", "SmolVLM 2.2B Instruct (Idefics3), open weights"
+        ),
+        _registered("smolvlm2", "hf", "HuggingFaceTB/SmolVLM2-2.2B-Instruct", "SmolVLM2 2.2B Instruct, open weights"),
+        _registered(
+            "smolvlm2-500m",
+            "hf",
+            "HuggingFaceTB/SmolVLM2-500M-Video-Instruct",
+            "SmolVLM2 500M Video Instruct, open weights",
         ),
         _registered("internvl3", "hf", "OpenGVLab/InternVL3-1B-hf", "InternVL3 1B (transformers port), open weights"),
         _registered(

@@ -80,3 +80,31 @@ def test_a_folder_without_weights_is_refused(tmp_path):
     with pytest.raises(BackendError, match=r"no weight files"):
         folder_revision(folder)
 
+
+def test_a_required_video_processor_is_made_optional_with_the_same_parameters():
+    from vlmproprio.backends.hf_files import _video_optional
+
+    class Processor:  # SmolVLMProcessor's signature: a video processor is required
+        def __init__(self, image_processor, tokenizer, video_processor, image_seq_len=169, chat_template=None):
+            self.parts = (image_processor, tokenizer, video_processor, image_seq_len, chat_template)
+
+    init = _video_optional(Processor.__init__)
+    # from_pretrained picks the saved settings it passes by these names: image_seq_len must stay one of them
+    assert init.__code__ is Processor.__init__.__code__
+    made = Processor.__new__(Processor)
+    init(made, "ip", "tok", image_seq_len=64)
+    assert made.parts == ("ip", "tok", None, 64, None)
+
+    class Optional:
+        def __init__(self, image_processor=None, video_processor=None): ...
+
+    assert _video_optional(Optional.__init__) is Optional.__init__
+
+
+def test_the_stand_in_video_processor_answers_none_and_refuses_videos():
+    from vlmproprio.backends.hf_files import _NoVideoProcessor
+
+    stand_in = _NoVideoProcessor()
+    assert stand_in.num_frames is None and stand_in.fps is None
+    with pytest.raises(BackendError, match=r"videos need the video processor, which needs torchvision"):
+        stand_in(["a video"])

@@ -17,7 +17,9 @@ Without torchvision (it cannot be installed next to the CPU torch used here),
 class without its video part: a local subclass whose sub-processor list leaves
 ``video_processor`` out, loaded with the ordinary ``from_pretrained``. Nothing
 in transformers is patched. Images work exactly as with AutoProcessor; videos
-are not supported (vlmproprio sends none).
+are not supported (vlmproprio sends none): where the processor's code reads its
+video processor's settings whatever it is given (SmolVLM's chat template call),
+a stand-in answers None, and a video is refused.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import functools
 import hashlib
 import json
 import re
+import types
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -174,6 +177,36 @@ def _processor_class_name(path: Path) -> str | None:
     return PROCESSOR_MAPPING_NAMES.get(config.model_type)
 
 
+def _video_optional(init: types.FunctionType) -> types.FunctionType:
+    """``init`` with None as the default of its ``video_processor`` parameter, where it has none (SmolVLM's
+    processor requires one). The same code object: ``from_pretrained`` reads the parameter names off it to
+    decide which saved settings to pass."""
+    code = init.__code__
+    names = code.co_varnames[: code.co_argcount]
+    defaults = init.__defaults__ or ()
+    if "video_processor" not in names or code.co_argcount - names.index("video_processor") <= len(defaults):
+        return init
+    missing = code.co_argcount - names.index("video_processor") - len(defaults)
+    copy = types.FunctionType(code, init.__globals__, init.__name__, (None,) * missing + defaults, init.__closure__)
+    copy.__kwdefaults__ = init.__kwdefaults__
+    copy.__qualname__ = init.__qualname__
+    return copy
+
+
+class _NoVideoProcessor:
+    """Stands where an image-only processor's video processor would be, for code that reads its settings
+    whatever the request holds (SmolVLM's ``apply_chat_template`` passes its ``num_frames`` and ``fps`` on):
+    every setting is None, and processing a video is refused."""
+
+    def __getattr__(self, name: str) -> None:
+        if name.startswith("__"):
+            raise AttributeError(name)
+        return None
+
+    def __call__(self, *args, **kwargs):
+        raise BackendError("videos need the video processor, which needs torchvision; vlmproprio sends images only")
+
+
 @functools.cache
 def _image_only(processor_cls: type) -> type:
     """``processor_cls`` without its video processor: ``from_pretrained`` then loads only image + text parts."""
@@ -181,7 +214,12 @@ def _image_only(processor_cls: type) -> type:
     def get_attributes(cls) -> list[str]:
         return [a for a in super(sub, cls).get_attributes() if a != "video_processor"]
 
-    sub = type(f"{processor_cls.__name__}ImageOnly", (processor_cls,), {"get_attributes": classmethod(get_attributes)})
+    body = {
+        "get_attributes": classmethod(get_attributes),
+        "__init__": _video_optional(processor_cls.__init__),
+        "video_processor": _NoVideoProcessor(),
+    }
+    sub = type(f"{processor_cls.__name__}ImageOnly", (processor_cls,), body)
     return sub
 
 

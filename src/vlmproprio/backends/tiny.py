@@ -50,6 +50,7 @@ FAMILIES: tuple[str, ...] = (
     "mllama",
     "llava-next",
     "idefics2",
+    "smolvlm",
 )
 BUILD_VERSION = 3  # 2: the LLaVA build's context holds Process 3 at the image cap; 3: the Qwen builds' too
 

@@ -162,6 +162,37 @@ def save_idefics3(out: Path, seed: int) -> None:
     save_pieces(out, tok, image_processor, "Idefics3Processor", chat_template("idefics3"), image_seq_len=64)
 
 
+def save_smolvlm(out: Path, seed: int) -> None:
+    """SmolVLM2 (HuggingFaceTB/SmolVLM2-500M-Video-Instruct's processor: SmolVLMProcessor, which needs
+    ``num2words``, and its image processor): the Idefics3 geometry (512 px views, 16 px patches, pixel shuffle
+    by 4, 64 tokens a view) and tokens, with SmolVLM2's own classes and its template, which also takes video
+    parts. Published, image splitting is on (a 256x256 frame ~1,100 tokens; the model's context is 8,192):
+    off here, as for Idefics3."""
+    from transformers import SmolVLMConfig, SmolVLMForConditionalGeneration, SmolVLMImageProcessorPil
+
+    rows_cols = tuple(f"<row_{i + 1}_col_{j + 1}>" for i in range(6) for j in range(6))
+    specials = ("<global-img>", *rows_cols, "<fake_token_around_image>", "<image>", "<end_of_utterance>")
+    tok = family_tokenizer(bos="<|im_start|>", eos="<end_of_utterance>", pad="<|im_end|>", specials=specials)
+    [image] = token_ids(tok, "<image>")
+    config = SmolVLMConfig(
+        text_config=dict(model_type="llama", **tiny_text_config(tok, eos="<end_of_utterance>")),
+        vision_config=tiny_vision_config(image_size=512, patch_size=16),
+        scale_factor=4,
+        image_token_id=image,
+        tie_word_embeddings=False,
+    )
+    save_model(out, SmolVLMForConditionalGeneration, config, tok, ("<end_of_utterance>",), seed)
+    image_processor = SmolVLMImageProcessorPil(
+        do_image_splitting=False,
+        size={"longest_edge": 2048},
+        max_image_size={"longest_edge": 512},
+        image_mean=[0.5, 0.5, 0.5],
+        image_std=[0.5, 0.5, 0.5],
+        resample=1,  # LANCZOS, as published
+    )
+    save_pieces(out, tok, image_processor, "SmolVLMProcessor", chat_template("smolvlm"), image_seq_len=64)
+
+
 # ------------------------------------------------------------------------------------------------ InternVL
 
 
@@ -400,6 +431,7 @@ BUILDERS: dict[str, Callable[[Path, int], None]] = {
     "qwen3-vl": save_qwen3_vl,
     "gemma3": save_gemma3,
     "idefics3": save_idefics3,
+    "smolvlm": save_smolvlm,
     "internvl": save_internvl,
     "llava-onevision": save_llava_onevision,
     "mistral3": save_mistral3,
