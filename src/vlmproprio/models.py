@@ -179,7 +179,8 @@ REGISTRY: dict[str, ModelRef] = {
             "gpt-4-vision-preview",
             "GPT-4V, the paper's model, through the OpenAI API (it may no longer be served: replay its cassette)",
         ),
-        _registered("gpt-4o", "openai", "gpt-4o", "GPT-4o through the OpenAI API"),
+        # a dated snapshot: the alias "gpt-4o" moves to newer snapshots, and answers cached under it would mix them
+        _registered("gpt-4o", "openai", "gpt-4o-2024-08-06", "GPT-4o (the 2024-08-06 snapshot) through the OpenAI API"),
         _registered(
             "tiny-qwen2-vl", "hf", TINY_PREFIX + "qwen2-vl", "tiny random Qwen2-VL built locally; tests only", 64
         ),

@@ -18,7 +18,7 @@ def test_registry_has_the_models_the_paper_and_ci_need():
         "qwen2.5-vl": ("hf", "Qwen/Qwen2.5-VL-3B-Instruct"),
         "llava": ("hf", "llava-hf/llava-1.5-7b-hf"),
         "gpt-4v": ("openai", "gpt-4-vision-preview"),
-        "gpt-4o": ("openai", "gpt-4o"),
+        "gpt-4o": ("openai", "gpt-4o-2024-08-06"),  # a snapshot: the alias moves
         "tiny-qwen2-vl": ("hf", "tiny:qwen2-vl"),
         "tiny-qwen2.5-vl": ("hf", "tiny:qwen2.5-vl"),
         "tiny-llava": ("hf", "tiny:llava"),

@@ -61,7 +61,7 @@ def test_models_says_what_can_run_here(capsys) -> None:
     assert main(["models", "--fixtures", str(FIXTURES), "--model", "tiny-qwen2-vl,gpt-4o,reference"]) == 0
     out = capsys.readouterr().out
     assert "tiny-qwen2-vl  [hf: tiny:qwen2-vl]  replay: yes  live: yes" in out
-    assert "gpt-4o  [openai: gpt-4o]  replay: no" in out
+    assert "gpt-4o  [openai: gpt-4o-2024-08-06]  replay: no" in out
     assert "vlmproprio run --model gpt-4o --mode record" in out  # how to get a cassette
     assert "reference  [reference]  replay: yes  live: yes" in out
 
