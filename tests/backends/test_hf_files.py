@@ -108,3 +108,21 @@ def test_the_stand_in_video_processor_answers_none_and_refuses_videos():
     assert stand_in.num_frames is None and stand_in.fps is None
     with pytest.raises(BackendError, match=r"videos need the video processor, which needs torchvision"):
         stand_in(["a video"])
+
+
+def test_an_unreadable_file_of_the_folder_is_one_clear_error(tmp_path, monkeypatch):
+    import errno
+
+    from vlmproprio.backends import hf_files
+
+    folder = _model(tmp_path / "m")
+
+    def unreadable(path):  # as a file without read permission is, for a user other than root
+        if path.name == "chat_template.jinja":
+            raise PermissionError(errno.EACCES, "Permission denied", str(path))
+        return real(path)
+
+    real = hf_files.sha256_file
+    monkeypatch.setattr(hf_files, "sha256_file", unreadable)
+    with pytest.raises(BackendError, match=r"chat_template.jinja: cannot read a file of the model folder \(Permission"):
+        folder_revision(folder)

@@ -93,7 +93,11 @@ def folder_revision(folder: Path) -> str:
         raise BackendError(f"{folder}: no weight files (*.safetensors or *.bin)")
     h = hashlib.sha256()
     for p in files:
-        h.update(f"{p.relative_to(folder).as_posix()}\0{content_sha256(p)}\n".encode())
+        try:
+            digest = content_sha256(p)
+        except OSError as exc:
+            raise BackendError(f"{p}: cannot read a file of the model folder ({exc.strerror or exc})") from exc
+        h.update(f"{p.relative_to(folder).as_posix()}\0{digest}\n".encode())
     return "sha256:" + h.hexdigest()
 
 
