@@ -54,24 +54,38 @@ def test_what_decides_no_answer_keeps_the_revision(tmp_path):
     (folder / ".gitattributes").write_text("*.safetensors filter=lfs\n")
     (folder / ".cache" / "huggingface").mkdir(parents=True)
     (folder / ".cache" / "huggingface" / "download.lock").write_text("")
+    (folder / "__pycache__").mkdir()
+    (folder / "__pycache__" / "processing_custom.cpython-311.pyc").write_bytes(b"\x00bytecode")
     (folder / STAMP_FILE).write_text('{"build_version": 99}\n')
-    config = json.loads((folder / "config.json").read_text())
-    config["transformers_version"] = "9.0.0"  # saved again by another transformers, nothing else changed
-    (folder / "config.json").write_text(json.dumps(config, indent=2))  # and formatted otherwise
     assert folder_revision(folder) == before
+
+
+def test_a_config_saved_by_another_transformers_is_a_new_revision(tmp_path):
+    """transformers reads the version a config.json was written by (a Mistral tokenizer's regex depends on it),
+    so no byte of a config is taken for cosmetic."""
+    folder = _model(tmp_path / "m")
+    before = folder_revision(folder)
+    config = json.loads((folder / "config.json").read_text())
+    config["transformers_version"] = "4.57.0"
+    (folder / "config.json").write_text(json.dumps(config))
+    assert folder_revision(folder) != before
+
+
+def test_files_in_subfolders_count_by_their_path(tmp_path):
+    folder = _model(tmp_path / "m")
+    (folder / "sub").mkdir()
+    (folder / "sub" / "extra.json").write_text("{}")
+    nested = folder_revision(folder)
+    (folder / "sub" / "extra.json").rename(folder / "extra.json")
+    assert folder_revision(folder) != nested
+    (folder / "sub" / "extra.json").write_text("{}")  # both, and a name no UTF-8 decoder accepts
+    (folder / "sub" / b"caf\xe9.json".decode("utf-8", "surrogateescape")).write_text("{}")
+    assert folder_revision(folder).startswith("sha256:")
 
 
 def test_the_revision_is_the_same_on_every_machine(tmp_path):
     assert folder_revision(_model(tmp_path / "a")) == folder_revision(_model(tmp_path / "b"))
     assert resolve_weights(tmp_path / "a").revision == folder_revision(tmp_path / "b")
-
-
-def test_a_json_file_that_does_not_parse_is_hashed_as_bytes(tmp_path):
-    folder = _model(tmp_path / "m")
-    (folder / "added_tokens.json").write_text("{not json")
-    before = folder_revision(folder)
-    (folder / "added_tokens.json").write_text("{not json either")
-    assert folder_revision(folder) != before
 
 
 def test_a_folder_without_weights_is_refused(tmp_path):
@@ -100,6 +114,11 @@ def test_a_required_video_processor_is_made_optional_with_the_same_parameters():
 
     assert _video_optional(Optional.__init__) is Optional.__init__
 
+    class Before:  # a required parameter after it: defaulting only the video processor is not possible
+        def __init__(self, image_processor, video_processor, tokenizer): ...
+
+    assert _video_optional(Before.__init__) is Before.__init__
+
 
 def test_the_stand_in_video_processor_answers_none_and_refuses_videos():
     from vlmproprio.backends.hf_files import _NoVideoProcessor
@@ -112,17 +131,21 @@ def test_the_stand_in_video_processor_answers_none_and_refuses_videos():
 
 def test_an_unreadable_file_of_the_folder_is_one_clear_error(tmp_path, monkeypatch):
     import errno
-
-    from vlmproprio.backends import hf_files
+    import os
 
     folder = _model(tmp_path / "m")
+    target = str(folder / "tokenizer.json")
+    real_open = os.open
 
-    def unreadable(path):  # as a file without read permission is, for a user other than root
-        if path.name == "chat_template.jinja":
+    def open_(path, *args, **kwargs):  # as a file without read permission is, for a user other than root
+        if str(path) == target:
             raise PermissionError(errno.EACCES, "Permission denied", str(path))
-        return real(path)
+        return real_open(path, *args, **kwargs)
 
-    real = hf_files.sha256_file
-    monkeypatch.setattr(hf_files, "sha256_file", unreadable)
-    with pytest.raises(BackendError, match=r"chat_template.jinja: cannot read a file of the model folder \(Permission"):
+    monkeypatch.setattr(os, "open", open_)
+    with pytest.raises(BackendError) as caught:
         folder_revision(folder)
+    assert (
+        str(caught.value)
+        == f"{target}: cannot hash this file of the model folder: cannot read (Permission denied (EACCES))"
+    )

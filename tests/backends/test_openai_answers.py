@@ -103,6 +103,8 @@ def test_a_plain_answer_is_stored_as_it_always_was(api_key, request_factory, tmp
         ("gpt-4-vision-preview", "gpt-4-1106-vision-preview", False),
         ("Qwen/Qwen2.5-VL-7B-Instruct", "Qwen/Qwen2.5-VL-7B-Instruct", False),
         ("gpt-4o", "gpt-4o-mini-2024-07-18", True),
+        ("gpt-4o-2024-08-06", "gpt-4o-2024-08-06", False),  # the registry's gpt-4o: a snapshot
+        ("gpt-4o-2024-08-06", "gpt-4o-2024-11-20", True),  # another snapshot is another model
         ("Qwen/Qwen2.5-VL-7B-Instruct", "Qwen/Qwen2.5-VL-3B-Instruct", True),
     ],
 )

@@ -42,8 +42,8 @@ FRAME_TOKENS = {
     "glm4v": 81,
     "mllama": 1,  # cross-attention: the frame is one <|image|> token in the text
     "idefics2": 64,  # one 378 px view resampled to 64 latents (image splitting off: published, five views)
-    "llava-next": 136,
-    "smolvlm": 64,  # as Idefics3: one 512 px view (image splitting off)  # base view and two anyres tiles at 42 px patches (the real 14 px: 1,176)
+    "llava-next": 136,  # base view and two anyres tiles at 42 px patches (the real 14 px: 1,176)
+    "smolvlm": 64,  # as Idefics3: one 512 px view (image splitting off)
 }
 # Families whose processor transformers ships only with torchvision (PixtralProcessor): without it, their policy is
 # a one-line error naming the model, the family and the fix

@@ -5,15 +5,16 @@ Offline only unless asked: weights come from a local folder or the local Hugging
 (``local_files_only``); ``allow_download`` fetches a repo id missing from the cache.
 
 Revision (the cache key's ``revision``): the snapshot commit hash when the model comes from the HF cache (a
-commit covers every file of the repo), else ``sha256:<hex>`` over every file of the folder that decides an
-answer (``folder_revision``): the weights and everything read beside them — config, generation config,
-processor and tokenizer files, chat template, any code the folder ships. An edited chat template or
-preprocessor config is a new revision, so it never replays answers cached under the old one; a local folder,
-such as a tiny test model, gets the same revision on every machine.
+commit covers every file of the repo), else ``sha256:<hex>`` over the bytes of every file of the folder
+(``folder_revision``) but hidden files, documentation, bytecode and the tiny builds' stamp: the weights and
+everything read beside them — config, generation config, processor and tokenizer files, chat template, any
+code the folder ships. An edited chat template or preprocessor config is a new revision, so it never replays
+answers cached under the old one; a local folder, such as a tiny test model, gets the same revision on every
+machine. Files no loader reads (an ``onnx/`` export) are hashed too: slower, never wrong.
 
 Without torchvision (it cannot be installed next to the CPU torch used here),
 ``AutoProcessor`` fails for processors that also declare a video processor
-(Qwen2-VL, Qwen2.5-VL, LLaVA-OneVision). The fallback loads the same processor
+(Qwen2-VL, Qwen2.5-VL, Qwen3-VL, GLM-4V, InternVL, LLaVA-OneVision, SmolVLM2). The fallback loads the same processor
 class without its video part: a local subclass whose sub-processor list leaves
 ``video_processor`` out, loaded with the ordinary ``from_pretrained``. Nothing
 in transformers is patched. Images work exactly as with AutoProcessor; videos
@@ -34,6 +35,7 @@ from pathlib import Path
 
 from vlmproprio.backends.base import BackendError
 from vlmproprio.episodes import sha256_file
+from vlmproprio.io import ReadError
 
 WEIGHT_SUFFIXES = (".safetensors", ".bin")
 _SNAPSHOT_RE = re.compile(r"models--(?P<org>[^/]+?)--(?P<name>[^/]+)/snapshots/(?P<commit>[0-9a-f]{40})/?$")
@@ -48,56 +50,49 @@ class ResolvedWeights:
     source: str  # "hf-cache" | "local"
 
 
-# Files that decide no answer: documentation, and the tiny builds' stamp (its build number moves with the
-# project's build code even when no file a model reads does). Hidden files and folders (.git, .cache) too.
+# Files that decide no answer: documentation, bytecode (its .py is hashed), and the tiny builds' stamp (its
+# build number moves with the project's build code even when no file a model reads does). Hidden files and
+# folders (.git, .cache) too. Everything else is hashed as the bytes transformers reads: a file that merely
+# looks cosmetic can change answers (transformers reads the transformers_version a config.json was written by).
 STAMP_FILE = "vlmproprio-tiny.json"  # what built a tiny model (vlmproprio.backends.tiny)
 UNHASHED_NAMES = (STAMP_FILE,)
 _DOCUMENTATION = re.compile(r"^(readme|license|licence|notice|copying)([._-].*)?$|\.md$", re.IGNORECASE)
-# The transformers version that wrote a config is not a setting of the model: a folder saved again by another
-# version, nothing else changed, keeps its revision.
-_WRITER_FIELDS = ("transformers_version",)
+_BYTECODE = ("__pycache__",)
 
 
 def _deciding(rel: Path) -> bool:
     return not (
-        any(part.startswith(".") for part in rel.parts) or rel.name in UNHASHED_NAMES or _DOCUMENTATION.search(rel.name)
+        any(part.startswith(".") or part in _BYTECODE for part in rel.parts)
+        or rel.name in UNHASHED_NAMES
+        or rel.suffix == ".pyc"
+        or _DOCUMENTATION.search(rel.name)
     )
 
 
-def _without_writer(value: object) -> object:
-    if isinstance(value, dict):
-        return {k: _without_writer(v) for k, v in value.items() if k not in _WRITER_FIELDS}
-    if isinstance(value, list):
-        return [_without_writer(v) for v in value]
-    return value
-
-
-def content_sha256(path: Path) -> str:
-    """sha256 of a file's bytes; of a JSON file, of its canonical JSON without the writer's transformers version
-    (a file that does not parse as JSON is hashed as bytes)."""
-    if path.suffix == ".json":
-        try:
-            data = json.loads(path.read_bytes())
-        except (ValueError, UnicodeDecodeError):
-            return sha256_file(path)
-        text = json.dumps(_without_writer(data), sort_keys=True, separators=(",", ":"), ensure_ascii=False)
-        return hashlib.sha256(text.encode()).hexdigest()
-    return sha256_file(path)
+def _unreadable(path: Path, detail: str) -> BackendError:
+    return BackendError(f"{path}: cannot hash this file of the model folder: {detail}")
 
 
 def folder_revision(folder: Path) -> str:
-    """sha256 over (relative path, content_sha256) of every file in ``folder`` that decides an answer."""
+    """sha256 over (relative POSIX path, sha256 of the bytes) of every file in ``folder`` but those
+    ``_deciding`` leaves out, in the order of their paths (the same on every platform)."""
     folder = Path(folder)
-    files = sorted(p for p in folder.rglob("*") if p.is_file() and _deciding(p.relative_to(folder)))
-    if not any(p.name.endswith(WEIGHT_SUFFIXES) for p in files):
+    try:
+        found = [p for p in folder.rglob("*") if p.is_file()]
+    except OSError as exc:
+        raise _unreadable(Path(exc.filename or folder), exc.strerror or str(exc)) from exc
+    files = sorted((p.relative_to(folder).as_posix(), p) for p in found if _deciding(p.relative_to(folder)))
+    if not any(rel.endswith(WEIGHT_SUFFIXES) for rel, _ in files):
         raise BackendError(f"{folder}: no weight files (*.safetensors or *.bin)")
     h = hashlib.sha256()
-    for p in files:
+    for rel, p in files:
         try:
-            digest = content_sha256(p)
-        except OSError as exc:
-            raise BackendError(f"{p}: cannot read a file of the model folder ({exc.strerror or exc})") from exc
-        h.update(f"{p.relative_to(folder).as_posix()}\0{digest}\n".encode())
+            digest = sha256_file(p)
+        except ReadError as exc:
+            raise _unreadable(p, getattr(exc, "detail", "") or str(exc)) from exc
+        except OSError as exc:  # FileNotFoundError: removed while hashing
+            raise _unreadable(p, exc.strerror or str(exc)) from exc
+        h.update(f"{rel}\0{digest}\n".encode("utf-8", "surrogateescape"))  # any name a folder can hold
     return "sha256:" + h.hexdigest()
 
 
@@ -182,18 +177,19 @@ def _processor_class_name(path: Path) -> str | None:
 
 
 def _video_optional(init: types.FunctionType) -> types.FunctionType:
-    """``init`` with None as the default of its ``video_processor`` parameter, where it has none (SmolVLM's
-    processor requires one). The same code object: ``from_pretrained`` reads the parameter names off it to
-    decide which saved settings to pass."""
+    """``init`` with None as the default of its ``video_processor`` parameter where that is the last required
+    positional one (SmolVLM's processor requires it); any other ``init`` unchanged. The same code object:
+    ``from_pretrained`` reads the parameter names off it to decide which saved settings to pass."""
     code = init.__code__
     names = code.co_varnames[: code.co_argcount]
     defaults = init.__defaults__ or ()
-    if "video_processor" not in names or code.co_argcount - names.index("video_processor") <= len(defaults):
+    first_default = code.co_argcount - len(defaults)
+    if "video_processor" not in names or names.index("video_processor") != first_default - 1:
         return init
-    missing = code.co_argcount - names.index("video_processor") - len(defaults)
-    copy = types.FunctionType(code, init.__globals__, init.__name__, (None,) * missing + defaults, init.__closure__)
+    copy = types.FunctionType(code, init.__globals__, init.__name__, (None, *defaults), init.__closure__)
     copy.__kwdefaults__ = init.__kwdefaults__
-    copy.__qualname__ = init.__qualname__
+    copy.__qualname__, copy.__doc__, copy.__module__ = init.__qualname__, init.__doc__, init.__module__
+    copy.__annotations__ = dict(getattr(init, "__annotations__", {}))
     return copy
 
 

@@ -85,8 +85,16 @@ def read_completion(resp) -> _Reply:
 
 def _model_name(name: str) -> str:
     """A model name without its date or snapshot numbers: OpenAI answers "gpt-4o" as "gpt-4o-2024-08-06" and
-    "gpt-4-vision-preview" as "gpt-4-1106-vision-preview", which are the model asked for."""
+    "gpt-4-vision-preview" as "gpt-4-1106-vision-preview", snapshots the alias stood for when asked."""
     return "-".join(p for p in name.lower().split("-") if not (p.isdigit() and len(p) >= 2))
+
+
+def _same_model(asked: str, answered: str) -> bool:
+    """Whether ``answered`` is the model ``asked`` names: an alias is answered by any of its snapshots, a name
+    with its snapshot numbers (the registry's "gpt-4o-2024-08-06") by that snapshot only."""
+    if _model_name(asked) != asked.lower():
+        return answered.lower() == asked.lower()
+    return _model_name(answered) == _model_name(asked)
 
 
 def answer_problem_of(reply: _Reply, asked: str) -> str:
@@ -104,6 +112,6 @@ def answer_problem_of(reply: _Reply, asked: str) -> str:
     if not reply.text:
         return "reasoning_only" if reply.reasoning else "empty"
     got = extra["response_model"]
-    if got and _model_name(got) != _model_name(asked):
+    if got and not _same_model(asked, got):
         return "other_model"
     return ""
