@@ -1,7 +1,9 @@
 """The sha256 of a folder's files, remembered across processes for files that have not changed.
 
 The sentence encoder's revision is the digest of its folder (all-MiniLM-L6-v2's weights): hashing it again in
-every process that scores a run would be a noticeable share of a warm score (perf/machinery.py). So a digest
+every process that scores a run would be a noticeable share of a warm score (perf/machinery.py). A local model
+folder's revision (vlmproprio.backends.hf_files, gigabytes of weights) is remembered the same way, under its own
+name and in its own layout (``hasher``). So a digest
 is remembered in ``folder-digests.json`` in a folder the caller names (scoring: the embedding cache, whose keys the
 digest is part of) together with the identity of every file it covers (``file_signature``: device, inode, size,
 mtime and ctime in nanoseconds). Writing a file's bytes changes its ctime, which no program can set back
@@ -22,6 +24,7 @@ import hashlib
 import json
 import os
 import time
+from collections.abc import Callable
 from functools import lru_cache
 from pathlib import Path
 
@@ -35,6 +38,7 @@ SETTLED_NS = 2_000_000_000  # a file changed less than this before it was listed
 
 Signature = tuple[int, int, int, int, int]  # device, inode, size, mtime_ns, ctime_ns
 Listing = tuple[tuple, ...]  # (relative name, *Signature) per file
+Hasher = Callable[[Path, Listing], str]  # the digest of a folder's listed files
 
 
 def file_signature(st: os.stat_result) -> Signature:
@@ -98,19 +102,23 @@ def _remember(path: Path, key: str, listing: Listing, digest: str) -> None:
 
 
 @lru_cache(maxsize=16)
-def _digest(root: str, listing: Listing, memo: str | None) -> str:
-    key = os.path.realpath(root)
+def _digest(root: str, listing: Listing, memo: str | None, hasher: Hasher, name: str) -> str:
+    key = os.path.realpath(root) + (f"#{name}" if name else "")  # one folder, several kinds of digest
     path = Path(memo) / MEMO_FILE if memo is not None else None
     digest = _remembered(_read_memo(path), key, listing) if path is not None else None
     if digest is None:
-        digest = hash_files(Path(root), listing)
+        digest = hasher(Path(root), listing)
         now = time.time_ns()
         if path is not None and all(settled(row[1:], now) for row in listing):
             _remember(path, key, listing, digest)
     return digest
 
 
-def folder_digest(root: Path, files: list[Path], memo: Path | None = None) -> str:
-    """sha256 over the relative names and bytes of ``files`` (under ``root``, in order). Hashed once per process
-    for the same file signatures; with ``memo`` (a folder), once for all processes that name it."""
-    return _digest(str(root), folder_listing(root, files), str(memo) if memo is not None else None)
+def folder_digest(
+    root: Path, files: list[Path], memo: Path | None = None, *, hasher: Hasher | None = None, name: str = ""
+) -> str:
+    """sha256 over the relative names and bytes of ``files`` (under ``root``, in order), or what ``hasher`` makes
+    of their listing (a digest of another layout, remembered under ``name``). Hashed once per process for the
+    same file signatures; with ``memo`` (a folder), once for all processes that name it."""
+    memo_dir = str(memo) if memo is not None else None
+    return _digest(str(root), folder_listing(root, files), memo_dir, hasher or hash_files, name)

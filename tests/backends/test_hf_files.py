@@ -149,3 +149,30 @@ def test_an_unreadable_file_of_the_folder_is_one_clear_error(tmp_path, monkeypat
         str(caught.value)
         == f"{target}: cannot hash this file of the model folder: cannot read (Permission denied (EACCES))"
     )
+
+
+def test_a_folders_revision_is_remembered_until_a_file_changes(tmp_path, monkeypatch):
+    """Hashed once for all processes that share the memo (a model's weights are gigabytes), and again as soon as
+    any file changes; the encoder's digest of the same folder is remembered beside it, not in its place."""
+    from vlmproprio import digests
+    from vlmproprio.backends import hf_files
+
+    monkeypatch.setattr(digests, "SETTLED_NS", 0)  # the files were written just now
+    folder, memo = _model(tmp_path / "m"), tmp_path / "cache" / "models"
+    plain = folder_revision(folder)
+    hashed: list[str] = []
+    real = hf_files.sha256_file
+    monkeypatch.setattr(hf_files, "sha256_file", lambda p: hashed.append(p.name) or real(p))
+
+    digests._digest.cache_clear()  # a new process
+    assert folder_revision(folder, memo) == plain and "model.safetensors" in hashed
+    hashed.clear()
+    digests._digest.cache_clear()
+    assert folder_revision(folder, memo) == plain and hashed == []  # from the memo
+    assert digests.folder_digest(folder, [folder / "config.json"], memo) != plain.removeprefix("sha256:")
+    assert folder_revision(folder, memo) == plain and hashed == []
+
+    (folder / "chat_template.jinja").write_text("{{ messages }}")
+    digests._digest.cache_clear()
+    changed = folder_revision(folder, memo)
+    assert changed != plain and changed == folder_revision(folder) and hashed

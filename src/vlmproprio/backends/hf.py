@@ -1,10 +1,9 @@
 """Open-weights VLMs through transformers (``AutoModelForImageTextToText`` + the model's processor).
 
-Offline only: weights come from a local folder or the local Hugging Face cache
-(``local_files_only``), never from the network. Decoding is greedy (the paper's
-temperature 0). dtype, device (``cpu``, ``cuda``, or ``auto`` = accelerate's
-device map) and the attention implementation are explicit settings; dtype and
-attention enter the cache key because they change the scores.
+Weights (offline unless downloads are allowed) and the processor come from vlmproprio.backends.hf_files.
+Decoding is greedy (the paper's temperature 0). dtype, device (``cpu``, ``cuda``, or ``auto`` = accelerate's
+device map) and the attention implementation are explicit settings; dtype and attention enter the cache key
+because they change the scores.
 
 Batching: ``plan_batches`` groups the requests it is given by shape (prompt
 length with image tokens, number of images; see vlmproprio.backends.scheduling)
@@ -27,8 +26,6 @@ by reading the weights. ``compile_decode=True`` compiles on a CPU too (slow to
 compile; for tests), ``False`` never. Neither the cache kind nor the batch size
 enters the cache key: like the device, they are how an answer was computed,
 recorded in ``AnswerMeta.extra``.
-
-Weights and the processor come from vlmproprio.backends.hf_files.
 """
 
 from __future__ import annotations
@@ -51,6 +48,7 @@ from vlmproprio.backends.hf_tokens import PromptTokenCounter
 from vlmproprio.backends.scheduling import RequestShape, plan_batches, round_up
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart
 from vlmproprio.kinds import KindOption, KindSpec, register_kind
+from vlmproprio.locations import cache_root
 from vlmproprio.models import ModelRef, file_slug
 
 if TYPE_CHECKING:
@@ -101,11 +99,12 @@ class HFBackend(Backend):
         cache_bucket: int = DEFAULT_CACHE_BUCKET,
         max_batch_tokens: int | None = None,
         allow_download: bool = False,
+        revision_memo: Path | None = None,
     ) -> None:
         """``static_cache``: a static KV cache per batch; ``compile_decode``: compile the decode step
         (None: on a GPU only, as transformers does; needs the static cache); ``cache_bucket``: static cache
         lengths are multiples of it; ``max_batch_tokens``: cap on rows x longest prompt of a batch (None:
-        CPU_BATCH_TOKENS on a CPU, no cap elsewhere)."""
+        CPU_BATCH_TOKENS on a CPU, no cap elsewhere); ``revision_memo``: where a folder's revision is remembered."""
         if device not in DEVICES and not re.fullmatch(r"cuda:\d+", device):
             raise BackendError(f"unknown device {device!r}; choose cpu, cuda, cuda:N or auto")
         if dtype not in DTYPES:
@@ -122,7 +121,7 @@ class HFBackend(Backend):
             raise BackendError(f"cache_bucket must be >= 1, got {cache_bucket}")
         if max_batch_tokens is not None and max_batch_tokens < 1:
             raise BackendError(f"max_batch_tokens must be >= 1, got {max_batch_tokens}")
-        self.weights = resolve_weights(weights, model_id, allow_download=allow_download)
+        self.weights = resolve_weights(weights, model_id, allow_download=allow_download, memo=revision_memo)
         self.allow_download = allow_download
         self.device = device
         self.dtype = _resolve_dtype(dtype, device)
@@ -428,7 +427,8 @@ def _create_hf(ref: ModelRef, settings: BackendSettings) -> Backend:
         from vlmproprio.backends.tiny import ensure_tiny_model
 
         weights, model_id = str(ensure_tiny_model(ref.tiny_family, settings.home)), ref.name
-    return HFBackend(weights, model_id=model_id, **asdict(settings.for_kind("hf")))
+    memo = cache_root(settings.home) / "models"  # beside the tiny builds
+    return HFBackend(weights, model_id=model_id, revision_memo=memo, **asdict(settings.for_kind("hf")))
 
 
 def _missing_modules(*names: str) -> list[str]:

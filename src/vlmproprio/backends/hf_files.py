@@ -25,6 +25,7 @@ a stand-in answers None, and a video is refused.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import json
@@ -34,6 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vlmproprio.backends.base import BackendError
+from vlmproprio.digests import Listing, folder_digest
 from vlmproprio.episodes import sha256_file
 from vlmproprio.io import ReadError
 
@@ -73,27 +75,38 @@ def _unreadable(path: Path, detail: str) -> BackendError:
     return BackendError(f"{path}: cannot hash this file of the model folder: {detail}")
 
 
-def folder_revision(folder: Path) -> str:
-    """sha256 over (relative POSIX path, sha256 of the bytes) of every file in ``folder`` but those
-    ``_deciding`` leaves out, in the order of their paths (the same on every platform)."""
+def _revision_of(root: Path, listing: Listing) -> str:
+    """sha256 over (relative POSIX path, sha256 of the bytes) of each listed file, in order."""
+    h = hashlib.sha256()
+    for rel, *_ in listing:
+        path = root / rel
+        try:
+            digest = sha256_file(path)
+        except ReadError as exc:
+            raise _unreadable(path, getattr(exc, "detail", "") or str(exc)) from exc
+        except OSError as exc:  # FileNotFoundError: removed while hashing
+            raise _unreadable(path, exc.strerror or str(exc)) from exc
+        h.update(f"{rel}\0{digest}\n".encode("utf-8", "surrogateescape"))  # any name a folder can hold
+    return h.hexdigest()
+
+
+def folder_revision(folder: Path, memo: Path | None = None) -> str:
+    """The revision of a local model folder: ``_revision_of`` every file but those ``_deciding`` leaves out, in
+    the order of their paths (the same on every platform). With ``memo`` (a folder), remembered there across
+    processes while no file changes (vlmproprio.digests): a model's weights are gigabytes."""
     folder = Path(folder)
     try:
         found = [p for p in folder.rglob("*") if p.is_file()]
-    except OSError as exc:
+        files = sorted((p.relative_to(folder).as_posix(), p) for p in found if _deciding(p.relative_to(folder)))
+        if not any(rel.endswith(WEIGHT_SUFFIXES) for rel, _ in files):
+            raise BackendError(f"{folder}: no weight files (*.safetensors or *.bin)")
+        if memo is not None:
+            with contextlib.suppress(OSError):  # not remembered, still right
+                Path(memo).mkdir(parents=True, exist_ok=True)
+        digest = folder_digest(folder, [p for _, p in files], memo, hasher=_revision_of, name="model-revision")
+    except OSError as exc:  # a folder that cannot be listed, a file gone before it was listed
         raise _unreadable(Path(exc.filename or folder), exc.strerror or str(exc)) from exc
-    files = sorted((p.relative_to(folder).as_posix(), p) for p in found if _deciding(p.relative_to(folder)))
-    if not any(rel.endswith(WEIGHT_SUFFIXES) for rel, _ in files):
-        raise BackendError(f"{folder}: no weight files (*.safetensors or *.bin)")
-    h = hashlib.sha256()
-    for rel, p in files:
-        try:
-            digest = sha256_file(p)
-        except ReadError as exc:
-            raise _unreadable(p, getattr(exc, "detail", "") or str(exc)) from exc
-        except OSError as exc:  # FileNotFoundError: removed while hashing
-            raise _unreadable(p, exc.strerror or str(exc)) from exc
-        h.update(f"{rel}\0{digest}\n".encode("utf-8", "surrogateescape"))  # any name a folder can hold
-    return "sha256:" + h.hexdigest()
+    return "sha256:" + digest
 
 
 def how_to_provide(repo_id: str) -> str:
@@ -107,10 +120,11 @@ def how_to_provide(repo_id: str) -> str:
 
 
 def resolve_weights(
-    weights: str | Path, model_id: str | None = None, *, allow_download: bool = False
+    weights: str | Path, model_id: str | None = None, *, allow_download: bool = False, memo: Path | None = None
 ) -> ResolvedWeights:
     """Find weights: a local folder, or an HF repo id in the local HF cache; with ``allow_download`` an id that
-    is not there is fetched from the Hugging Face Hub (when one is reachable)."""
+    is not there is fetched from the Hugging Face Hub (when one is reachable). ``memo``: where a local folder's
+    revision may be remembered (see folder_revision)."""
     text = str(weights)
     path = Path(text).expanduser()
     if path.is_dir():
@@ -118,7 +132,7 @@ def resolve_weights(
         m = _SNAPSHOT_RE.search(path.as_posix())
         if m:  # a folder inside the HF cache: the commit hash is the revision
             return ResolvedWeights(path, model_id or f"{m['org']}/{m['name']}", m["commit"], "hf-cache")
-        return ResolvedWeights(path, model_id or path.name, folder_revision(path), "local")
+        return ResolvedWeights(path, model_id or path.name, folder_revision(path, memo), "local")
     if text.startswith(("/", ".", "~")) or not _HF_ID_RE.match(text):
         raise BackendError(f"model folder {text} does not exist")
     from huggingface_hub import snapshot_download
