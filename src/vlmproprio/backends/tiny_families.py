@@ -125,6 +125,37 @@ def save_gemma3(out: Path, seed: int) -> None:
 # ------------------------------------------------------------------------------------------------ Idefics3 (SmolVLM)
 
 
+_ROWS_COLS = tuple(f"<row_{i + 1}_col_{j + 1}>" for i in range(6) for j in range(6))  # the tiles' tags
+
+
+def _save_idefics3_geometry(
+    out: Path, seed: int, classes: tuple, processor_class: str, family: str, specials: tuple[str, ...]
+) -> None:
+    """An Idefics3-style build: 512 px views of 64 tokens (16 px patches, pixel shuffle by 4), image splitting
+    off, on a Llama text model; ``classes`` are the family's config, model and image processor classes and
+    ``specials`` its special tokens in the order that fixes their ids."""
+    config_cls, model_cls, image_processor_cls = classes
+    tok = family_tokenizer(bos="<|im_start|>", eos="<end_of_utterance>", pad="<|im_end|>", specials=specials)
+    [image] = token_ids(tok, "<image>")
+    config = config_cls(
+        text_config=dict(model_type="llama", **tiny_text_config(tok, eos="<end_of_utterance>")),
+        vision_config=tiny_vision_config(image_size=512, patch_size=16),
+        scale_factor=4,
+        image_token_id=image,
+        tie_word_embeddings=False,
+    )
+    save_model(out, model_cls, config, tok, ("<end_of_utterance>",), seed)
+    image_processor = image_processor_cls(
+        do_image_splitting=False,
+        size={"longest_edge": 2048},
+        max_image_size={"longest_edge": 512},
+        image_mean=[0.5, 0.5, 0.5],
+        image_std=[0.5, 0.5, 0.5],
+        resample=1,  # LANCZOS, as published
+    )
+    save_pieces(out, tok, image_processor, processor_class, chat_template(family), image_seq_len=64)
+
+
 def save_idefics3(out: Path, seed: int) -> None:
     """Idefics3 as SmolVLM (HuggingFaceTB/SmolVLM-256M-Instruct's processor, 512 px views of 64 tokens: 16 px
     patches, pixel shuffle by 4), with image splitting off. Published, splitting is on: an image is scaled so its
@@ -136,61 +167,21 @@ def save_idefics3(out: Path, seed: int) -> None:
     (``--max-images-p3 7`` fits 8,192 tokens with splitting on)."""
     from transformers import Idefics3Config, Idefics3ForConditionalGeneration, Idefics3ImageProcessorPil
 
-    rows_cols = tuple(f"<row_{i + 1}_col_{j + 1}>" for i in range(6) for j in range(6))
-    specials = ("<fake_token_around_image>", "<image>", "<end_of_utterance>", "<global-img>", *rows_cols)
-    tok = family_tokenizer(bos="<|im_start|>", eos="<end_of_utterance>", pad="<|im_end|>", specials=specials)
-    [image] = token_ids(tok, "<image>")
-    config = Idefics3Config(
-        text_config=dict(model_type="llama", **tiny_text_config(tok, eos="<end_of_utterance>")),
-        vision_config=tiny_vision_config(
-            image_size=512,
-            patch_size=16,
-        ),
-        scale_factor=4,
-        image_token_id=image,
-        tie_word_embeddings=False,
-    )
-    save_model(out, Idefics3ForConditionalGeneration, config, tok, ("<end_of_utterance>",), seed)
-    image_processor = Idefics3ImageProcessorPil(
-        do_image_splitting=False,
-        size={"longest_edge": 2048},
-        max_image_size={"longest_edge": 512},
-        image_mean=[0.5, 0.5, 0.5],
-        image_std=[0.5, 0.5, 0.5],
-        resample=1,  # LANCZOS, as published
-    )
-    save_pieces(out, tok, image_processor, "Idefics3Processor", chat_template("idefics3"), image_seq_len=64)
+    classes = (Idefics3Config, Idefics3ForConditionalGeneration, Idefics3ImageProcessorPil)
+    specials = ("<fake_token_around_image>", "<image>", "<end_of_utterance>", "<global-img>", *_ROWS_COLS)
+    _save_idefics3_geometry(out, seed, classes, "Idefics3Processor", "idefics3", specials)
 
 
 def save_smolvlm(out: Path, seed: int) -> None:
     """SmolVLM2 (HuggingFaceTB/SmolVLM2-500M-Video-Instruct's processor: SmolVLMProcessor, which needs
-    ``num2words``, and its image processor): the Idefics3 geometry (512 px views, 16 px patches, pixel shuffle
-    by 4, 64 tokens a view) and tokens, with SmolVLM2's own classes and its template, which also takes video
-    parts. Published, image splitting is on (a 256x256 frame ~1,100 tokens; the model's context is 8,192):
-    off here, as for Idefics3."""
+    ``num2words``, and its image processor): the Idefics3 geometry and tokens (the special tokens in SmolVLM2's
+    order), with SmolVLM2's own classes and its template, which also takes video parts. Published, image
+    splitting is on (a 256x256 frame ~1,100 tokens; the model's context is 8,192): off here, as for Idefics3."""
     from transformers import SmolVLMConfig, SmolVLMForConditionalGeneration, SmolVLMImageProcessorPil
 
-    rows_cols = tuple(f"<row_{i + 1}_col_{j + 1}>" for i in range(6) for j in range(6))
-    specials = ("<global-img>", *rows_cols, "<fake_token_around_image>", "<image>", "<end_of_utterance>")
-    tok = family_tokenizer(bos="<|im_start|>", eos="<end_of_utterance>", pad="<|im_end|>", specials=specials)
-    [image] = token_ids(tok, "<image>")
-    config = SmolVLMConfig(
-        text_config=dict(model_type="llama", **tiny_text_config(tok, eos="<end_of_utterance>")),
-        vision_config=tiny_vision_config(image_size=512, patch_size=16),
-        scale_factor=4,
-        image_token_id=image,
-        tie_word_embeddings=False,
-    )
-    save_model(out, SmolVLMForConditionalGeneration, config, tok, ("<end_of_utterance>",), seed)
-    image_processor = SmolVLMImageProcessorPil(
-        do_image_splitting=False,
-        size={"longest_edge": 2048},
-        max_image_size={"longest_edge": 512},
-        image_mean=[0.5, 0.5, 0.5],
-        image_std=[0.5, 0.5, 0.5],
-        resample=1,  # LANCZOS, as published
-    )
-    save_pieces(out, tok, image_processor, "SmolVLMProcessor", chat_template("smolvlm"), image_seq_len=64)
+    classes = (SmolVLMConfig, SmolVLMForConditionalGeneration, SmolVLMImageProcessorPil)
+    specials = ("<global-img>", *_ROWS_COLS, "<fake_token_around_image>", "<image>", "<end_of_utterance>")
+    _save_idefics3_geometry(out, seed, classes, "SmolVLMProcessor", "smolvlm", specials)
 
 
 # ------------------------------------------------------------------------------------------------ InternVL
