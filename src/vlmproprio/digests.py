@@ -1,11 +1,11 @@
 """The sha256 of a folder's files, remembered across processes for files that have not changed.
 
 The sentence encoder's revision is the digest of its folder (all-MiniLM-L6-v2's weights): hashing it again in
-every process that scores a run would be a noticeable share of a warm score (perf/machinery.py). A local model
-folder's revision (vlmproprio.backends.hf_files, gigabytes of weights) is remembered the same way, under its own
-name and in its own layout (``hasher``). So a digest
-is remembered in ``folder-digests.json`` in a folder the caller names (scoring: the embedding cache, whose keys the
-digest is part of) together with the identity of every file it covers (``file_signature``: device, inode, size,
+every process that scores a run would be a noticeable share of a warm score (perf/machinery.py); a local model
+folder's revision (vlmproprio.backends.hf_files) covers gigabytes of weights. So a digest is remembered in
+``folder-digests.json`` in a folder the caller names (scoring: the embedding cache, whose keys the digest is part
+of; a model's revision: the cache's models/ folder, under its own name and in its own layout, ``hasher``)
+together with the identity of every file it covers (``file_signature``: device, inode, size,
 mtime and ctime in nanoseconds). Writing a file's bytes changes its ctime, which no program can set back
 (``touch``/``os.utime`` set mtime and change the ctime too), and replacing a file changes its inode; so any change
 to a file is another signature, and its folder is hashed again. What this does not see is bytes changed under the

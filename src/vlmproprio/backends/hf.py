@@ -48,7 +48,6 @@ from vlmproprio.backends.hf_tokens import PromptTokenCounter
 from vlmproprio.backends.scheduling import RequestShape, plan_batches, round_up
 from vlmproprio.chat import Answer, AnswerMeta, ChatRequest, ImagePart
 from vlmproprio.kinds import KindOption, KindSpec, register_kind
-from vlmproprio.locations import cache_root
 from vlmproprio.models import ModelRef, file_slug
 
 if TYPE_CHECKING:
@@ -422,12 +421,12 @@ def hf_slug(name: str, weights: str) -> str:
 
 
 def _create_hf(ref: ModelRef, settings: BackendSettings) -> Backend:
+    from vlmproprio.backends.tiny import ensure_tiny_model, models_dir
+
     weights, model_id = ref.weights, None
     if ref.tiny_family:
-        from vlmproprio.backends.tiny import ensure_tiny_model
-
         weights, model_id = str(ensure_tiny_model(ref.tiny_family, settings.home)), ref.name
-    memo = cache_root(settings.home) / "models"  # beside the tiny builds
+    memo = models_dir(settings.home)
     return HFBackend(weights, model_id=model_id, revision_memo=memo, **asdict(settings.for_kind("hf")))
 
 

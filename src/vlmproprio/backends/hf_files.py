@@ -96,8 +96,8 @@ def folder_revision(folder: Path, memo: Path | None = None) -> str:
     processes while no file changes (vlmproprio.digests): a model's weights are gigabytes."""
     folder = Path(folder)
     try:
-        found = [p for p in folder.rglob("*") if p.is_file()]
-        files = sorted((p.relative_to(folder).as_posix(), p) for p in found if _deciding(p.relative_to(folder)))
+        found = [(p.relative_to(folder), p) for p in folder.rglob("*") if p.is_file()]
+        files = sorted((rel.as_posix(), p) for rel, p in found if _deciding(rel))
         if not any(rel.endswith(WEIGHT_SUFFIXES) for rel, _ in files):
             raise BackendError(f"{folder}: no weight files (*.safetensors or *.bin)")
         if memo is not None:

@@ -324,16 +324,17 @@ def build_tiny_model(family: str, out_dir: Path | str, *, seed: int = 0) -> Path
     return out
 
 
-def vlmproprio_home() -> Path:
-    """The cache root (vlmproprio.locations.cache_root): tiny models go to its models/ folder."""
+def models_dir(home: Path | None = None) -> Path:
+    """The models/ folder of the cache root ``home`` (None: vlmproprio.locations.cache_root()): the tiny builds,
+    and the memo of local model folders' revisions."""
     from vlmproprio.locations import cache_root
 
-    return cache_root()
+    return cache_root(home) / "models"
 
 
 def tiny_model_dir(family: str, home: Path | None = None) -> Path:
     check_family(family)
-    return (home or vlmproprio_home()) / "models" / f"tiny-{family}-b{BUILD_VERSION}"
+    return models_dir(home) / f"tiny-{family}-b{BUILD_VERSION}"
 
 
 def _valid_build(folder: Path, family: str) -> bool:
